@@ -1,0 +1,50 @@
+# vistac: make setup | make demo | make test | make bench | make lint
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+DEMO_OUT ?= out/demo
+# System libraries the wheels need (open3d: libusb, libgomp, libGL).
+SYSTEM_LIBS := libusb-1.0-0 libgomp1 libgl1
+
+.PHONY: setup system-libs demo test test-all bench lint clean
+
+setup: $(STAMP)
+
+system-libs:
+	@missing=""; for lib in libusb-1.0.so.0 libgomp.so.1 libGL.so.1; do \
+	  ldconfig -p | grep -q "$$lib" || missing="$$missing $$lib"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system libraries for:$$missing"; \
+	  if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
+	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq $(SYSTEM_LIBS) >/dev/null; \
+	fi
+
+$(STAMP): pyproject.toml | system-libs
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade "pip>=23" "setuptools>=68" wheel
+	# The CPU build of torch, pinned: an unpinned torch pulls gigabytes of CUDA packages.
+	$(BIN)/pip install -q "torch==2.13.0"
+	$(BIN)/pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+demo: setup
+	$(BIN)/vistac run skills/collect_pushes.yaml --out $(DEMO_OUT) --overwrite \
+	  --set components.world.with.object=objects/rect2.yaml
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+test-all: setup
+	$(BIN)/python -m pytest -q -m "slow or not slow"
+
+bench: setup
+	$(BIN)/python benchmarks/run_all.py --out BENCHMARKS.md
+
+lint: setup
+	$(BIN)/ruff check core plugins tests benchmarks examples
+	$(BIN)/mypy core plugins
+
+clean:
+	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache

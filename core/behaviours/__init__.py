@@ -1,0 +1,1 @@
+"""Built-in behaviours: the skill vocabulary of the YAML tree."""

@@ -1,0 +1,68 @@
+"""``update_belief`` and ``belief_converged``: the filter's side of the loop."""
+
+from __future__ import annotations
+
+import fnmatch
+import logging
+
+from py_trees.common import Status
+from pydantic import Field
+
+from vistac.component import ComponentConfig
+from vistac.tree import SkillBehaviour
+from vistac.types import GaussianBelief
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MAX_STD = {"m_*": 0.05, "f_j_*": 0.03, "f_*": 0.03, "com_*": 0.005}
+
+
+class UpdateBelief(SkillBehaviour):
+    """Feed the last episode to the filter. (A NaN belief cannot be built: GaussianBelief
+    rejects it, which stops the run with the arm stopped.)"""
+
+    reads = ("episode", "belief")
+    writes = ("belief",)
+    role_fields = {"filter": "filter"}
+
+    class Config(ComponentConfig):
+        filter: str = "filter"
+
+    def update(self) -> Status:
+        belief = self.component("filter").update(self.read("episode"))
+        self.write("belief", belief)
+        self.run.results["belief"] = belief.as_dict()
+        self.run.hook.vistac_belief(run=self.run.info, belief=belief)
+        return Status.SUCCESS
+
+
+class BeliefConverged(SkillBehaviour):
+    """SUCCESS when every belief entry matching a pattern of ``max_std`` has a standard
+    deviation at or below its limit (the first matching pattern counts; entries matching
+    none, such as poses, are ignored)."""
+
+    reads = ("belief",)
+
+    class Config(ComponentConfig):
+        max_std: dict[str, float] = Field(
+            default_factory=lambda: dict(DEFAULT_MAX_STD),
+            description="fnmatch pattern over belief entry names -> largest allowed std",
+        )
+
+    def update(self) -> Status:
+        belief: GaussianBelief = self.read("belief")
+        unconverged = [
+            name for name, std in zip(belief.names, belief.std, strict=True)
+            if (limit := self._limit(name)) is not None and std > limit
+        ]
+        self.run.results["converged"] = not unconverged
+        if unconverged:
+            self.feedback_message = "not yet: " + ", ".join(unconverged)
+            return Status.FAILURE
+        return Status.SUCCESS
+
+    def _limit(self, name: str) -> float | None:
+        for pattern, limit in self.config.max_std.items():
+            if fnmatch.fnmatchcase(name, pattern):
+                return limit
+        return None

@@ -1,0 +1,128 @@
+"""``choose_action`` and ``execute_action``: pick a push or pull, then carry it out one control
+period per tick while recording the observation stream."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+from py_trees.common import Status
+from pydantic import Field
+
+from vistac.component import ComponentConfig
+from vistac.errors import DataError
+from vistac.protocols import Episode, Scene, StepObservation
+from vistac.tree import SkillBehaviour
+from vistac.types import Action, action_point
+
+log = logging.getLogger(__name__)
+
+
+class ChooseAction(SkillBehaviour):
+    """Sample candidate actions and select one. With a filter in the skill, the belief is
+    initialised from the scene the first time. Writes ``action`` (and ``belief``)."""
+
+    reads = ("cloud",)
+    optional_reads = ("shape", "belief")
+    writes = ("action", "belief")
+    role_fields = {"sampler": "action_sampler", "selector": "action_selector", "filter": "filter"}
+    optional_roles = ("filter",)
+
+    class Config(ComponentConfig):
+        sampler: str = "affordances"
+        selector: str = "planner"
+        filter: str = "filter"
+
+    @classmethod
+    def blackboard_writes(cls, config: Config, roles: dict[str, str]) -> set[str]:
+        return {"action"} | ({"belief"} if config.filter in roles else set())
+
+    def update(self) -> Status:
+        scene = Scene(self.read("cloud"), self.read("shape"), self.read("belief"))
+        filter_ = self.component("filter")
+        if filter_ is not None and scene.belief is None:
+            belief = filter_.initialise(scene)
+            self.write("belief", belief)
+            self.run.hook.vistac_belief(run=self.run.info, belief=belief)
+            scene = Scene(scene.cloud, scene.shape, belief)
+        rng = self.run.rng(f"choose_action/{self.run.episode_count}")
+        candidates = self.component("sampler").sample(scene, rng)
+        if not candidates:
+            raise DataError("choose_action: no reachable push or pull on the observed object")
+        action = self.component("selector").select(candidates, scene, rng)
+        self.write("action", action)
+        self.run.hook.vistac_action(run=self.run.info, episode=self.run.episode_count, action=action)
+        return Status.SUCCESS
+
+
+class ExecuteAction(SkillBehaviour):
+    """Carry out ``action`` through the executor, one control period per tick (RUNNING
+    until done). During the interaction proper, record per period the tactile forces, the
+    arm state, a depth image and, in simulation, the true link poses. Writes ``episode``."""
+
+    reads = ("action",)
+    writes = ("episode",)
+    role_fields = {"executor": "executor", "arm": "arm", "tactile": "tactile", "camera": "camera"}
+    optional_roles = ("camera",)
+
+    class Config(ComponentConfig):
+        executor: str = "executor"
+        arm: str = "arm"
+        tactile: str = "tactile"
+        camera: str = "camera"
+        depth_width: int = Field(64, gt=0, description="width of the per-step depth image")
+        depth_height: int = Field(64, gt=0)
+        record_depth: bool = True
+        max_sensor_age_s: float = Field(0.2, gt=0, description="older tactile/arm data stops the arm")
+
+    def initialise(self) -> None:
+        self.action: Action = self.read("action")
+        self.episode = Episode(self.run.episode_count, self.action)
+        self.observing = False
+        self.component("executor").start(self.action)
+        point = action_point(self.action)
+        log.info("episode %d: %s at (%.3f, %.3f) m towards %.0f deg", self.episode.index,
+                 self.action.kind, point[0], point[1], np.degrees(self.action.pd_rad))
+
+    def update(self) -> Status:
+        if self.observing:
+            self._record_step()
+        phase, self.observing = self.component("executor").step(self.run.period_s)
+        if phase != "done":
+            return Status.RUNNING
+        self._finish()
+        return Status.SUCCESS
+
+    def terminate(self, new_status: Status) -> None:
+        if new_status != Status.SUCCESS and self.run is not None and hasattr(self, "episode"):
+            self.component("executor").abort()
+            self.component("arm").stop()
+
+    def _record_step(self) -> None:
+        tactile = self.component("tactile").read()
+        arm_state = self.component("arm").state()
+        self.run.check_fresh("tactile", tactile.timestamp_s, self.config.max_sensor_age_s)
+        self.run.check_fresh("arm", arm_state.timestamp_s, self.config.max_sensor_age_s)
+        camera = self.component("camera")
+        depth = None
+        if camera is not None and self.config.record_depth:
+            depth = camera.capture(self.config.depth_width, self.config.depth_height).depth_m
+        world = self.run.world_if_built()
+        poses = world.ground_truth_poses() if world is not None else None
+        step = StepObservation(self.run.time_s, tactile, arm_state, depth, poses)
+        self.episode.steps.append(step)
+        self.run.hook.vistac_observation(run=self.run.info, episode=self.episode.index,
+                                         step=len(self.episode.steps) - 1, observation=step)
+
+    def _finish(self) -> None:
+        world = self.run.world_if_built()
+        truth = world.ground_truth() if world is not None else None
+        path = self.run.recorder.save_episode(self.episode, truth)
+        self.run.episode_count += 1
+        self.write("episode", self.episode)
+        self.run.hook.vistac_episode_end(run=self.run.info, episode=self.episode)
+        line: dict[str, Any] = self.run.recorder.episodes[-1]
+        moved = line.get("object_displacement_m")
+        log.info("episode %d done: %d steps%s -> %s", self.episode.index, len(self.episode.steps),
+                 f", object moved {max(moved) * 100:.1f} cm" if moved else "", path)

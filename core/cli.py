@@ -1,0 +1,217 @@
+"""The ``vistac`` command line.
+
+Exit codes: 0 success, 1 the skill failed or a runtime error, 2 invalid input (skill file,
+plugin name, option), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from vistac import __version__
+from vistac.errors import VistacError
+from vistac.pluginmanager import Plugins, load_plugins
+
+log = logging.getLogger("vistac")
+
+
+def _setup_logging(quiet: bool, verbose: bool) -> None:
+    level = logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s" if not verbose else "%(name)s: %(message)s"))
+    root = logging.getLogger("vistac")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
+
+
+def _plugins(args: argparse.Namespace) -> Plugins:
+    plugins = load_plugins(args.plugin)
+    missing = [f for f in plugins.failures if f.name in args.plugin]
+    if missing:
+        raise VistacError("; ".join(f"plugin {f.name}: {f.error}" for f in missing))
+    return plugins
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from vistac.scheduler import Scheduler
+    from vistac.skill import load_skill
+
+    plugins = _plugins(args)
+    skill = load_skill(args.skill, plugins.registry, args.set)
+    scheduler = Scheduler(skill, plugins, args.out, seed=args.seed, overwrite=args.overwrite)
+    result = scheduler.run()
+    print(format_summary(result.summary, result.out_dir))
+    if result.error:
+        print(f"error: {result.error}", file=sys.stderr)
+    return result.exit_code
+
+
+def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
+    """A short human-readable account of a run."""
+    lines = [f"skill {summary['skill']!r}: {summary['status']} in {summary['wall_time_s']:.1f} s"
+             + (f" ({summary['sim_time_s']:.1f} s simulated)" if summary.get("sim_time_s") else "")]
+    if summary.get("views"):
+        lines.append(f"  looked from {summary['views']} views")
+    for episode in summary.get("episodes", []):
+        action = episode["action"]
+        x, y = action["point_m"]
+        text = (f"  episode {episode['index']}: {action['kind']} at ({x:.3f}, {y:.3f}) m, "
+                f"direction {action['pd_rad'] * 57.2958:.0f} deg, {episode['steps']} steps")
+        if "object_displacement_m" in episode:
+            text += f", object moved {max(episode['object_displacement_m']) * 100:.1f} cm"
+        if "peak_tactile_force_n" in episode:
+            text += f", peak force {episode['peak_tactile_force_n']:.2f} N"
+        lines.append(text)
+    if summary.get("belief"):
+        lines.append(_belief_table(summary["belief"], (summary.get("ground_truth") or {}).get("parameters", {})))
+    lines.append(f"  data: {out_dir}/ (run.json, summary.json, episodes/, views/)")
+    return "\n".join(lines)
+
+
+def _belief_table(belief: dict[str, dict[str, float]], truth: dict[str, float]) -> str:
+    rows = [f"  {'parameter':<12}{'estimate':>10}{'std':>10}{'truth':>10}"]
+    for name, entry in belief.items():
+        true = f"{truth[name]:>10.4f}" if name in truth else f"{'-':>10}"
+        rows.append(f"  {name:<12}{entry['mean']:>10.4f}{entry['std']:>10.4f}{true}")
+    return "\n".join(rows)
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from vistac.errors import ConfigError
+    from vistac.skill import load_skill
+
+    plugins = _plugins(args)
+    worst = 0
+    for path in args.files:
+        try:
+            load_skill(path, plugins.registry, args.set)
+        except ConfigError as exc:
+            for line in str(exc).splitlines():
+                print(f"error: {line}", file=sys.stderr)
+            worst = max(worst, exc.exit_code)
+            continue
+        print(f"{path}: ok")
+    return worst
+
+
+def cmd_plugins(args: argparse.Namespace) -> int:
+    plugins = _plugins(args)
+    entries = plugins.registry.entries()
+    if args.json:
+        print(json.dumps({
+            "plugins": plugins.loaded,
+            "failures": [{"name": f.name, "error": f.error} for f in plugins.failures],
+            "components": [e.__dict__ for e in entries],
+        }, indent=2))
+        return 0
+    print("plugins: " + ", ".join(plugins.loaded))
+    for failure in plugins.failures:
+        print(f"failed:  {failure.name}: {failure.error}")
+    kind = None
+    for entry in entries:
+        if entry.kind != kind:
+            kind = entry.kind
+            print(f"\n{kind}:")
+        print(f"  {entry.name:<24} {entry.target}  [{entry.plugin}]")
+    return 0
+
+
+def cmd_schema(args: argparse.Namespace) -> int:
+    from vistac.schema import skill_schema
+
+    print(json.dumps(skill_schema(_plugins(args).registry), indent=2))
+    return 0
+
+
+def cmd_tree(args: argparse.Namespace) -> int:
+    import py_trees
+
+    from vistac.skill import load_skill
+    from vistac.tree import build_tree
+
+    skill = load_skill(args.skill, _plugins(args).registry, args.set)
+    print(py_trees.display.unicode_tree(build_tree(skill.tree, None)))
+    return 0
+
+
+def cmd_objects_generate(args: argparse.Namespace) -> int:
+    from vistac.objects import write_configurations
+
+    written = write_configurations(args.seed, args.out)
+    print(f"wrote {len(written)} object configurations and split.json to {args.out}")
+    return 0
+
+
+def _add_skill_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a key, e.g. components.arm.with.max_speed_mps=0.01")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vistac", description=__doc__.splitlines()[0] if __doc__ else "")
+    parser.add_argument("--version", action="version", version=f"vistac {__version__}")
+    parser.add_argument("-p", "--plugin", action="append", default=[], metavar="NAME",
+                        help="load this plugin (entry-point name or module), also when "
+                             "VISTAC_DISABLE_PLUGIN_AUTOLOAD=1")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="run a skill")
+    run.add_argument("skill", type=Path)
+    run.add_argument("--out", type=Path, required=True, help="output folder")
+    run.add_argument("--seed", type=int, default=None, help="override the skill's seed")
+    run.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out")
+    _add_skill_options(run)
+    run.set_defaults(func=cmd_run)
+
+    validate = sub.add_parser("validate", help="check skill files without running them")
+    validate.add_argument("files", type=Path, nargs="+")
+    _add_skill_options(validate)
+    validate.set_defaults(func=cmd_validate)
+
+    plugins = sub.add_parser("plugins", help="list plugins and components by kind")
+    plugins.add_argument("--json", action="store_true")
+    plugins.set_defaults(func=cmd_plugins)
+
+    schema = sub.add_parser("schema", help="print the JSON Schema of skill files")
+    schema.set_defaults(func=cmd_schema)
+
+    tree = sub.add_parser("tree", help="print a skill's behaviour tree")
+    tree.add_argument("skill", type=Path)
+    _add_skill_options(tree)
+    tree.set_defaults(func=cmd_tree)
+
+    objects = sub.add_parser("objects", help="object configurations")
+    objects_sub = objects.add_subparsers(dest="objects_command", required=True)
+    generate = objects_sub.add_parser("generate", help="write the 120 configurations and split")
+    generate.add_argument("--seed", type=int, default=0)
+    generate.add_argument("--out", type=Path, required=True)
+    generate.set_defaults(func=cmd_objects_generate)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    _setup_logging(args.quiet, args.verbose)
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except VistacError as exc:
+        for line in str(exc).splitlines():
+            print(f"error: {line}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,155 @@
+"""Runs a validated skill: builds components, ticks the tree once per control period, and
+guarantees the arm is stopped on every way out (success, failure, exception, Ctrl-C)."""
+
+from __future__ import annotations
+
+import logging
+import platform
+import sys
+import time
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import py_trees
+from py_trees.common import Status
+
+from vistac.errors import SafetyError, VistacError
+from vistac.pluginmanager import Plugins
+from vistac.recording import RunRecorder, prepare_out_dir
+from vistac.run import RunContext, SimClock
+from vistac.skill import Skill
+from vistac.tree import build_tree
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RunResult:
+    """Outcome of a run. ``status``: success | failure | error | interrupted."""
+
+    status: str
+    out_dir: Path
+    summary: dict[str, Any] = field(default_factory=dict)
+    error: str | None = None
+
+    @property
+    def exit_code(self) -> int:
+        return {"success": 0, "interrupted": 130}.get(self.status, 1)
+
+
+def _versions() -> dict[str, str]:
+    names = ("vistac", "numpy", "scipy", "mujoco", "py_trees", "pluggy", "pydantic", "torch", "open3d")
+    found = {"python": platform.python_version()}
+    for name in names:
+        try:
+            found[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    return found
+
+
+def _run_info(skill: Skill, plugins: Plugins, seed: int) -> dict[str, Any]:
+    return {
+        "skill": skill.name,
+        "skill_path": str(skill.path),
+        "seed": seed,
+        "config": skill.raw,
+        "plugins": plugins.loaded,
+        "versions": _versions(),
+        "machine": {"platform": platform.platform(), "processor": platform.machine()},
+        "command": sys.argv,
+        "started_unix_s": time.time(),
+        "status": "running",
+    }
+
+
+class Scheduler:
+    """Ticks one skill's tree under its clock."""
+
+    def __init__(self, skill: Skill, plugins: Plugins, out_dir: Path, seed: int | None = None,
+                 overwrite: bool = False) -> None:
+        prepare_out_dir(out_dir, overwrite)
+        self.skill = skill
+        self.seed = skill.seed if seed is None else seed
+        self.recorder = RunRecorder(out_dir)
+        self.ctx = RunContext(skill, plugins, self.recorder, self.seed)
+        self.run_info = _run_info(skill, plugins, self.seed)
+        self.ticks = 0
+
+    def run(self) -> RunResult:
+        """Run to completion. Never raises for failures: they are in the result."""
+        py_trees.blackboard.Blackboard.clear()
+        self.recorder.write_run(self.run_info)
+        wall_start_s = time.perf_counter()
+        result = RunResult("error", self.recorder.out_dir)
+        try:
+            result.status = self._tick_until_done()
+        except KeyboardInterrupt:
+            result.status, result.error = "interrupted", "interrupted by Ctrl-C"
+        except Exception as exc:  # every failure path ends with the arm stopped
+            result.error = str(exc) if isinstance(exc, VistacError) else f"{type(exc).__name__}: {exc}"
+            log.debug("run failed", exc_info=True)
+        finally:
+            stop_errors = self.ctx.stop_motion()
+        if stop_errors:
+            result.status = "error"
+            result.error = "; ".join(filter(None, [result.error, *stop_errors]))
+        result.summary = self._finish(result, time.perf_counter() - wall_start_s)
+        return result
+
+    def _tick_until_done(self) -> str:
+        self.ctx.build_all()
+        root = build_tree(self.skill.tree, self.ctx)
+        tree = py_trees.trees.BehaviourTree(root)
+        tree.setup()
+        self.ctx.hook.vistac_skill_start(run=self.ctx.info)
+        start_s = self.ctx.time_s
+        while True:
+            tree.tick()
+            self.ticks += 1
+            self.ctx.hook.vistac_tick(run=self.ctx.info, tick=self.ticks, time_s=self.ctx.time_s)
+            if root.status in (Status.SUCCESS, Status.FAILURE):
+                return "success" if root.status == Status.SUCCESS else "failure"
+            if self.ctx.time_s - start_s > self.skill.max_duration_s:
+                tree.interrupt()
+                raise SafetyError(f"skill exceeded max_duration_s = {self.skill.max_duration_s:g} s")
+            self.ctx.clock.advance(self.ctx.period_s)
+
+    def _finish(self, result: RunResult, wall_s: float) -> dict[str, Any]:
+        summary = self._summary(result, wall_s)
+        try:
+            self.ctx.hook.vistac_skill_end(run=self.ctx.info, status=result.status, summary=summary)
+        except Exception as exc:
+            log.error("an observer failed at skill end: %s", exc)
+        self.ctx.close_all()
+        self.recorder.write_summary(summary)
+        self.run_info.update(status=result.status, error=result.error, wall_time_s=wall_s,
+                             ticks=self.ticks)
+        self.recorder.write_run(self.run_info)
+        return summary
+
+    def _summary(self, result: RunResult, wall_s: float) -> dict[str, Any]:
+        summary: dict[str, Any] = {
+            "skill": self.skill.name,
+            "status": result.status,
+            "error": result.error,
+            "seed": self.seed,
+            "wall_time_s": wall_s,
+            "sim_time_s": self.ctx.time_s if isinstance(self.ctx.clock, SimClock) else None,
+            "ticks": self.ticks,
+            "views": self.recorder.views,
+            "episodes": self.recorder.episodes,
+        }
+        summary.update(self.ctx.results)
+        world = self.ctx.world_if_built()
+        truth = world.ground_truth() if world is not None else None
+        summary["ground_truth"] = truth
+        belief = summary.get("belief")
+        if belief and truth and "parameters" in truth:
+            summary["errors"] = {
+                name: abs(entry["mean"] - truth["parameters"][name])
+                for name, entry in belief.items() if name in truth["parameters"]
+            }
+        return summary

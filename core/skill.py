@@ -1,0 +1,209 @@
+"""Skill files: loading, command-line overrides and complete validation.
+
+Validation happens before anything is built or moves, and reports every problem at once with
+its YAML path: the file's structure, each component's plugin name and ``with:`` block against
+its ``Config``, each tree node's name and arguments, the roles a node uses, and that every
+blackboard key a node reads is written by an earlier node.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from vistac.component import ComponentSpec
+from vistac.errors import ConfigError, ConfigIssue, PluginError
+from vistac.registry import Registry
+from vistac.tree import TreeSpec, check_tree, parse_tree
+
+
+class SkillFile(BaseModel):
+    """Top level of a skill YAML."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    version: Literal[1]
+    name: str
+    description: str = ""
+    seed: int = 0
+    rate_hz: float = Field(15.0, gt=0, description="control and observation rate")
+    max_duration_s: float = Field(3600.0, gt=0, description="abort the run after this much (sim or wall) time")
+    components: dict[str, ComponentSpec] = Field(default_factory=dict)
+    tree: Any
+
+
+@dataclass
+class ResolvedComponent:
+    """A validated component: its plugin name, kind, class and parsed config."""
+
+    role: str
+    plugin: str
+    kind: str
+    cls: type
+    config: BaseModel
+
+
+@dataclass
+class Skill:
+    """A validated skill, ready to run."""
+
+    path: Path
+    name: str
+    seed: int
+    rate_hz: float
+    max_duration_s: float
+    raw: dict[str, Any]
+    components: dict[str, ResolvedComponent]
+    tree: TreeSpec
+
+    @property
+    def skill_dir(self) -> Path:
+        return self.path.parent
+
+
+def read_yaml(path: Path) -> Any:
+    """Safe-load a YAML file; a missing or malformed file is one clear ConfigError line."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError([ConfigIssue("", "file not found")], str(path)) from None
+    except OSError as exc:
+        raise ConfigError([ConfigIssue("", f"cannot read file: {exc.strerror}")], str(path)) from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError([ConfigIssue("", f"malformed YAML: {where}{problem}")], str(path)) from None
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``"components.arm.with.max_speed_mps=0.01"`` -> (key path, YAML-parsed value)."""
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise ConfigError([ConfigIssue("--set", f"{text!r} is not of the form key.path=value")])
+    try:
+        parsed = yaml.safe_load(value) if value.strip() else ""
+    except yaml.YAMLError:
+        parsed = value
+    return key.strip().split("."), parsed
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Set each ``key.path=value`` in ``data`` (creating mappings as needed)."""
+    for text in overrides:
+        keys, value = parse_override(text)
+        node: Any = data
+        for depth, key in enumerate(keys[:-1]):
+            child = node.get(key) if isinstance(node, dict) else None
+            if child is None:
+                child = node[key] = {}
+            if not isinstance(child, dict):
+                where = ".".join(keys[: depth + 1])
+                raise ConfigError([ConfigIssue("--set", f"{where} is not a mapping, cannot set {text!r}")])
+            node = child
+        node[keys[-1]] = value
+    return data
+
+
+def _loc(prefix: str, loc: tuple[int | str, ...]) -> str:
+    """Join a pydantic location onto a YAML path: ``a.b[0].c``."""
+    text = prefix
+    for item in loc:
+        if isinstance(item, int):
+            text += f"[{item}]"
+        else:
+            text = f"{text}.{item}" if text else str(item)
+    return text
+
+
+def pydantic_issues(prefix: str, error: ValidationError) -> list[ConfigIssue]:
+    """Convert a pydantic error into issues located by YAML path."""
+    return [ConfigIssue(_loc(prefix, tuple(e["loc"])), e["msg"]) for e in error.errors()]
+
+
+def validate_config(
+    cls: type, data: dict[str, Any], path: str, context: dict[str, Any]
+) -> tuple[BaseModel | None, list[ConfigIssue]]:
+    """Validate a ``with:`` block against ``cls.Config``."""
+    config_cls = cls.Config  # type: ignore[attr-defined]
+    try:
+        return config_cls.model_validate(data, context=context), []
+    except ValidationError as exc:
+        return None, pydantic_issues(path, exc)
+
+
+def _resolve_component(
+    path: str, spec: ComponentSpec, registry: Registry, context: dict[str, Any]
+) -> tuple[ResolvedComponent | None, list[ConfigIssue]]:
+    role = path.rsplit(".", 1)[-1]
+    try:
+        info = registry.info(spec.plugin)
+        if info.kind == "behaviour":
+            raise PluginError(f"{spec.plugin!r} is a tree node, not a component")
+        cls = registry.load(spec.plugin)
+    except PluginError as exc:
+        return None, [ConfigIssue(f"{path}.plugin", str(exc))]
+    config, issues = validate_config(cls, spec.with_, f"{path}.with", context)
+    issues += _nested_issues(config, f"{path}.with", registry, context) if config else []
+    if config is None or issues:
+        return None, issues
+    return ResolvedComponent(role, spec.plugin, info.kind, cls, config), []
+
+
+def _nested_issues(
+    config: BaseModel, path: str, registry: Registry, context: dict[str, Any]
+) -> list[ConfigIssue]:
+    """Validate component specs nested in a config (e.g. a filter's process model)."""
+    issues: list[ConfigIssue] = []
+    for field_name in type(config).model_fields:
+        value = getattr(config, field_name)
+        if isinstance(value, ComponentSpec):
+            issues += _resolve_component(f"{path}.{field_name}", value, registry, context)[1]
+    return issues
+
+
+def load_skill(path: Path, registry: Registry, overrides: list[str] | None = None) -> Skill:
+    """Read, override and fully validate a skill; raises ConfigError listing every problem."""
+    path = Path(path)
+    data = read_yaml(path)
+    if not isinstance(data, dict):
+        raise ConfigError([ConfigIssue("", "a skill file must be a YAML mapping")], str(path))
+    return validate_skill(apply_overrides(data, overrides or []), path, registry)
+
+
+def validate_skill(data: dict[str, Any], path: Path, registry: Registry) -> Skill:
+    """Validate skill data as if read from ``path`` (relative paths resolve next to it)."""
+    try:
+        skill_file = SkillFile.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(pydantic_issues("", exc), str(path)) from None
+    context = {"skill_dir": path.parent.resolve()}
+    issues: list[ConfigIssue] = []
+    components: dict[str, ResolvedComponent] = {}
+    for role, spec in skill_file.components.items():
+        resolved, found = _resolve_component(f"components.{role}", spec, registry, context)
+        issues += found
+        if resolved is not None:
+            components[role] = resolved
+    kinds = {
+        role: registry.info(spec.plugin).kind
+        for role, spec in skill_file.components.items()
+        if spec.plugin in registry.names()
+    }
+    tree, tree_issues = parse_tree(skill_file.tree, registry, context)
+    issues += tree_issues
+    if tree is not None:
+        issues += check_tree(tree, kinds)
+    if issues:
+        raise ConfigError(issues, str(path))
+    assert tree is not None
+    return Skill(
+        path.resolve(), skill_file.name, skill_file.seed, skill_file.rate_hz,
+        skill_file.max_duration_s, data, components, tree,
+    )

@@ -1,0 +1,1 @@
+"""Example vistac plugin package."""

@@ -1,0 +1,1 @@
+"""vistac built-in plugins."""

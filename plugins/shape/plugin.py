@@ -1,0 +1,11 @@
+"""Registers the shape-perception components. Imports nothing heavy."""
+
+from __future__ import annotations
+
+from vistac import hookimpl
+from vistac.registry import Registry
+
+
+@hookimpl
+def vistac_register(registry: Registry) -> None:
+    registry.add("view_planner", "shape.uniform_views", "vistac.plugins.shape.views:UniformViews")

@@ -1,0 +1,51 @@
+"""Shared fixtures. Tests load vistac's own plugins plus the test doubles in
+``fixtures_plugin.py``; third-party autoload is disabled for a sealed, reproducible set."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+os.environ["VISTAC_DISABLE_PLUGIN_AUTOLOAD"] = "1"
+
+from vistac.cli import main  # noqa: E402
+from vistac.pluginmanager import Plugins, load_plugins  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+SKILLS = ROOT / "skills"
+
+
+@pytest.fixture(scope="session")
+def plugins() -> Plugins:
+    return load_plugins(["fixtures_plugin"])
+
+
+@pytest.fixture
+def cli(capsys: pytest.CaptureFixture[str]) -> Callable[..., tuple[int, str, str]]:
+    """Run ``vistac ARGS`` in-process: returns (exit code, stdout, stderr)."""
+
+    def run(*args: str) -> tuple[int, str, str]:
+        code = main(["-p", "fixtures_plugin", *args])
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    return run
+
+
+def run_vistac(*args: str, env: dict[str, str] | None = None,
+               timeout_s: float = 300) -> subprocess.CompletedProcess[str]:
+    """Run the ``vistac`` CLI in a fresh interpreter."""
+    full_env = {**os.environ, **(env or {})}
+    return subprocess.run([sys.executable, "-m", "vistac.cli", *args], capture_output=True,
+                          text=True, env=full_env, timeout=timeout_s, cwd=ROOT)
+
+
+def write(path: Path, text: str) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path

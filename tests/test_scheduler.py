@@ -1,0 +1,129 @@
+"""The scheduler: tree semantics, outputs, and the arm stopped on every way out."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import write
+
+import fixtures_plugin
+from vistac.errors import ConfigError
+from vistac.pluginmanager import Plugins
+from vistac.protocols import Episode, StepObservation
+from vistac.scheduler import Scheduler
+from vistac.skill import load_skill
+from vistac.types import ArmState, Push, TactileReading
+
+
+def _run(tmp_path: Path, plugins: Plugins, tree: str, components: str = "arm: {plugin: test.arm}",
+         **skill_keys: object) -> tuple[Scheduler, object]:
+    extra = "".join(f"{k}: {v}\n" for k, v in skill_keys.items())
+    path = write(tmp_path / "skill.yaml",
+                 f"version: 1\nname: t\n{extra}components:\n  {components}\ntree:\n{tree}\n")
+    scheduler = Scheduler(load_skill(path, plugins.registry), plugins, tmp_path / "out")
+    fixtures_plugin.STOP_CALLS.clear()
+    return scheduler, scheduler.run()
+
+
+def test_repeat_until_condition(tmp_path: Path, plugins: Plugins) -> None:
+    tree = "  repeat: {do: [{count: {ticks: 3}}], until: {count_at_least: {n: 4}}, max: 10}"
+    scheduler, result = _run(tmp_path, plugins, tree)
+    assert result.status == "success"
+    assert scheduler.ctx.results == {}
+    # 4 iterations of a 3-tick body: 12 ticks.
+    assert scheduler.ticks == 12
+    assert fixtures_plugin.STOP_CALLS, "the arm is stopped at the end of every run"
+
+
+def test_repeat_stops_at_max_with_chosen_status(tmp_path: Path, plugins: Plugins) -> None:
+    tree = "  repeat: {do: [count], until: {count_at_least: {n: 100}}, max: 5, on_max: failure}"
+    scheduler, result = _run(tmp_path, plugins, tree)
+    assert result.status == "failure" and result.exit_code == 1
+    assert scheduler.ticks == 5
+
+
+def test_failing_body_fails_the_repeat(tmp_path: Path, plugins: Plugins) -> None:
+    _, result = _run(tmp_path, plugins, "  repeat: {do: [count, fail], max: 5}")
+    assert result.status == "failure"
+
+
+@pytest.mark.parametrize(("error", "status", "code", "message"), [
+    ("data", "error", 1, "boom: synthetic sensor failure"),
+    ("bug", "error", 1, "RuntimeError: boom: synthetic bug"),
+    ("interrupt", "interrupted", 130, "interrupted by Ctrl-C"),
+])
+def test_every_failure_stops_the_arm_and_is_recorded(
+    tmp_path: Path, plugins: Plugins, error: str, status: str, code: int, message: str
+) -> None:
+    _, result = _run(tmp_path, plugins, f"  - count\n  - {{boom: {{error: {error}}}}}")
+    assert (result.status, result.exit_code) == (status, code)
+    assert result.error == message
+    assert fixtures_plugin.STOP_CALLS == ["stop"]
+    run = json.loads((tmp_path / "out/run.json").read_text())
+    summary = json.loads((tmp_path / "out/summary.json").read_text())
+    assert run["status"] == status and summary["error"] == message
+
+
+def test_max_duration_is_a_safety_stop(tmp_path: Path, plugins: Plugins) -> None:
+    _, result = _run(tmp_path, plugins, "  - forever", max_duration_s=0.2, rate_hz=100)
+    assert result.status == "error"
+    assert "exceeded max_duration_s = 0.2 s" in (result.error or "")
+    assert fixtures_plugin.STOP_CALLS
+
+
+def test_existing_run_is_not_overwritten(tmp_path: Path, plugins: Plugins) -> None:
+    _run(tmp_path, plugins, "  - count")
+    path = tmp_path / "skill.yaml"
+    with pytest.raises(ConfigError, match="already holds a run"):
+        Scheduler(load_skill(path, plugins.registry), plugins, tmp_path / "out")
+    Scheduler(load_skill(path, plugins.registry), plugins, tmp_path / "out", overwrite=True)
+
+
+def _episode(xs: np.ndarray) -> Episode:
+    steps = [StepObservation(i / 15, TactileReading(np.zeros((2, 2)), i / 15),
+                             ArmState(np.array([x, 0, 0, 0]), np.zeros(4), i / 15)) for i, x in enumerate(xs)]
+    return Episode(0, Push(np.zeros(2), 0.0, 0.02), steps)
+
+
+def test_belief_nodes_with_a_known_filter(tmp_path: Path, plugins: Plugins) -> None:
+    from vistac.behaviours.belief import BeliefConverged
+    from vistac.testing import build_components
+
+    ctx = build_components({"filter": {"plugin": "test.kalman", "with": {"noise_var": 0.04}}},
+                           tmp_path, plugins=plugins)
+    kalman = ctx.component("filter")
+    kalman.initialise(None)
+    rng = np.random.default_rng(0)
+    measurements = 0.7 + rng.normal(0, 0.2, 50)
+    belief = kalman.update(_episode(measurements))
+    # A constant observed with noise: the posterior is the precision-weighted mean.
+    precision = 1 / 1.0 + 50 / 0.04
+    assert belief.cov[0, 0] == pytest.approx(1 / precision)
+    assert belief.mean[0] == pytest.approx((measurements.sum() / 0.04) / precision)
+    node = BeliefConverged("c", BeliefConverged.Config(max_std={"m_*": 0.05}), None)
+    assert node._limit("m_0") == 0.05 and node._limit("x_0") is None
+
+
+FILTER = "arm: {plugin: test.arm}\n  filter: {plugin: test.kalman, with: {noise_var: 0.04%s}}"
+
+
+def test_interact_until_converged(tmp_path: Path, plugins: Plugins) -> None:
+    tree = ("  repeat: {do: [fake_interaction, update_belief], max: 20,"
+            " until: {belief_converged: {max_std: {'m_*': 0.02}}}}")
+    scheduler, result = _run(tmp_path, plugins, tree, components=FILTER % "")
+    assert result.status == "success"
+    # std after k episodes of 15 measurements: 1/sqrt(1 + 15 k / 0.04) <= 0.02 from k = 7.
+    assert scheduler.ctx.episode_count == 7
+    assert scheduler.ctx.results["converged"] is True
+    assert result.summary["belief"]["m_0"]["mean"] == pytest.approx(0.7, abs=0.06)  # 3 standard errors
+
+
+def test_diverged_filter_stops_the_run(tmp_path: Path, plugins: Plugins) -> None:
+    tree = "  - fake_interaction\n  - update_belief\n  - fake_interaction\n  - update_belief"
+    _, result = _run(tmp_path, plugins, tree, components=FILTER % ", nan_after: 1")
+    assert result.status == "error"
+    assert "GaussianBelief.mean: contains NaN" in (result.error or "")
+    assert fixtures_plugin.STOP_CALLS == ["stop"]

@@ -1,0 +1,132 @@
+"""Complete validation before anything moves: every error at once, with its YAML path."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from conftest import SKILLS, write
+
+from vistac.errors import ConfigError
+from vistac.pluginmanager import Plugins
+from vistac.skill import apply_overrides, load_skill
+
+Cli = Callable[..., tuple[int, str, str]]
+
+TWO_MISTAKES = """\
+version: 1
+name: two-mistakes
+components:
+  world:   {plugin: sim.mujoco, with: {object: objects/rect1.yaml}}
+  arm:     {plugin: sim.armm}
+  camera:  {plugin: sim.depth_camera, with: {width: -320}}
+  views:   {plugin: shape.uniform_views}
+tree: [look]
+"""
+
+
+def test_two_mistakes_are_both_reported_with_paths_and_exit_2(tmp_path: Path, cli: Cli) -> None:
+    write(tmp_path / "objects/rect1.yaml", (SKILLS / "objects/rect1.yaml").read_text())
+    skill = write(tmp_path / "skill.yaml", TWO_MISTAKES)
+    code, _, err = cli("validate", str(skill))
+    assert code == 2
+    assert "components.arm.plugin: unknown plugin 'sim.armm' (did you mean 'sim.arm'?)" in err
+    assert "components.camera.with.width: Input should be greater than 0" in err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("version: 1\nname: x\ntree: [look\n", "malformed YAML: line"),
+        ("version: 1\nname: x\ncomponents: {}\ntree: [lok]\n", "unknown tree node 'lok' (did you mean 'look'?)"),
+        ("- just\n- a list\n", "a skill file must be a YAML mapping"),
+        ("version: 2\nname: x\ntree: stop\n", "version: Input should be 1"),
+        ("version: 1\nname: x\ntree: stop\nextra: 1\n", "extra: Extra inputs are not permitted"),
+    ],
+)
+def test_one_clear_line_per_problem(tmp_path: Path, cli: Cli, text: str, expected: str) -> None:
+    code, _, err = cli("validate", str(write(tmp_path / "s.yaml", text)))
+    assert code == 2
+    assert expected in err
+    assert len(err.strip().splitlines()) == 1, err
+    assert "Traceback" not in err
+
+
+def test_missing_file(tmp_path: Path, cli: Cli) -> None:
+    code, _, err = cli("run", str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "out"))
+    assert code == 2
+    assert err.strip() == f"error: {tmp_path / 'nope.yaml'}: file not found"
+    assert not (tmp_path / "out").exists(), "nothing is written for an invalid skill"
+
+
+def test_data_flow_and_roles_are_checked(tmp_path: Path, plugins: Plugins) -> None:
+    skill = write(tmp_path / "s.yaml", """\
+version: 1
+name: flow
+components:
+  arm: {plugin: test.arm}
+tree:
+  - needs_widget
+  - {choose_action: {selector: arm}}
+""")
+    with pytest.raises(ConfigError) as info:
+        load_skill(skill, plugins.registry)
+    text = str(info.value)
+    assert "tree[0].needs_widget: reads 'widget', but no earlier node writes it" in text
+    assert "tree[1].choose_action: needs a action_sampler component as role 'affordances'" in text
+    assert "tree[1].choose_action: role 'arm' is a arm, this node needs a action_selector" in text
+    assert "tree[1].choose_action: reads 'cloud', but no earlier node writes it" in text
+
+
+def test_repeat_arguments_and_nested_errors(tmp_path: Path, plugins: Plugins) -> None:
+    skill = write(tmp_path / "s.yaml", """\
+version: 1
+name: rep
+tree:
+  repeat: {do: [count, {count: {tickz: 2}}], until: {count_at_least: {n: x}}, max: 0}
+""")
+    with pytest.raises(ConfigError) as info:
+        load_skill(skill, plugins.registry)
+    text = str(info.value)
+    assert "tree.repeat.max: Input should be greater than 0" in text
+    skill.write_text(skill.read_text().replace("max: 0", "max: 3"))
+    with pytest.raises(ConfigError) as info:
+        load_skill(skill, plugins.registry)
+    text = str(info.value)
+    assert "tree.repeat.do[1].count.tickz: Extra inputs are not permitted" in text
+    assert "tree.repeat.until.count_at_least.n: Input should be a valid integer" in text
+
+
+def test_overrides_and_relative_paths(tmp_path: Path, plugins: Plugins) -> None:
+    write(tmp_path / "skills/objects/box.yaml", (SKILLS / "objects/rect1.yaml").read_text())
+    skill_path = write(tmp_path / "skills/s.yaml", """\
+version: 1
+name: paths
+components:
+  world: {plugin: sim.mujoco, with: {object: objects/box.yaml}}
+  arm: {plugin: sim.arm}
+tree: stop
+""")
+    skill = load_skill(skill_path, plugins.registry, ["components.arm.with.max_speed_mps=0.01", "seed=7"])
+    assert skill.components["world"].config.object == (tmp_path / "skills/objects/box.yaml").resolve()
+    assert skill.components["arm"].config.max_speed_mps == 0.01
+    assert skill.seed == 7
+    with pytest.raises(ConfigError, match="components.arm.with.max_speed_mps"):
+        load_skill(skill_path, plugins.registry, ["components.arm.with.max_speed_mps=-1"])
+
+
+def test_apply_overrides_reports_bad_keys() -> None:
+    assert apply_overrides({"a": {"b": 1}}, ["a.c=[1, 2]"]) == {"a": {"b": 1, "c": [1, 2]}}
+    with pytest.raises(ConfigError, match="not of the form"):
+        apply_overrides({}, ["nokey"])
+    with pytest.raises(ConfigError, match="a.b is not a mapping"):
+        apply_overrides({"a": {"b": 1}}, ["a.b.c=2"])
+
+
+def test_every_shipped_skill_validates(cli: Cli) -> None:
+    skills = sorted(SKILLS.glob("*.yaml"))
+    assert skills
+    code, out, err = cli("validate", *map(str, skills))
+    assert code == 0, err
