@@ -66,6 +66,10 @@ class World(Protocol):
         """Object parameters and current link poses when known (evaluation only), else None."""
         ...
 
+    def ground_truth_poses(self) -> FloatArray | None:
+        """True link poses [L, 3] = (x, y, theta) when known (recording only), else None."""
+        ...
+
     def object_center_m(self) -> FloatArray | None:
         """Where the object is expected (for aiming cameras): [3], or None when unknown."""
         ...

@@ -95,19 +95,28 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
-    """Set each ``key.path=value`` in ``data`` (creating mappings as needed)."""
+    """Set each ``key.path=value`` in ``data``; integer keys index lists
+    (``tree.sequence.1.repeat.max=2``); missing mapping keys are created."""
     for text in overrides:
         keys, value = parse_override(text)
         node: Any = data
-        for depth, key in enumerate(keys[:-1]):
-            child = node.get(key) if isinstance(node, dict) else None
-            if child is None:
-                child = node[key] = {}
-            if not isinstance(child, dict):
-                where = ".".join(keys[: depth + 1])
-                raise ConfigError([ConfigIssue("--set", f"{where} is not a mapping, cannot set {text!r}")])
-            node = child
-        node[keys[-1]] = value
+        for depth, key in enumerate(keys):
+            where = ".".join(keys[: depth + 1])
+            last = depth == len(keys) - 1
+            if isinstance(node, list):
+                if not key.isdigit() or int(key) >= len(node):
+                    raise ConfigError([ConfigIssue("--set", f"{where}: no list item {key!r}")])
+                index: Any = int(key)
+            elif isinstance(node, dict):
+                index = key
+                if not last and node.get(key) is None:
+                    node[key] = {}
+            else:
+                raise ConfigError([ConfigIssue("--set", f"{where}: cannot set inside a {type(node).__name__}")])
+            if last:
+                node[index] = value
+            else:
+                node = node[index]
     return data
 
 

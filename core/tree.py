@@ -12,6 +12,7 @@ Behaviours are components of kind ``behaviour``: subclasses of :class:`SkillBeha
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
@@ -26,6 +27,8 @@ from vistac.registry import Registry, suggest
 
 if TYPE_CHECKING:
     from vistac.run import RunContext
+
+log = logging.getLogger(__name__)
 
 COMPOSITES = ("sequence", "selector", "repeat")
 
@@ -258,7 +261,7 @@ class RepeatUntil(py_trees.composites.Composite):
         if self._condition_met():
             self._finish(Status.SUCCESS)
         elif self.iterations >= self.max_iterations:
-            self.logger.info(f"{self.name}: stopped after {self.iterations} iterations")
+            log.info("%s: stopped after %d iterations", self.name, self.iterations)
             self._finish(Status.SUCCESS if self.on_max == "success" else Status.FAILURE)
         else:
             self.status = Status.RUNNING

@@ -1,9 +1,10 @@
 """``actions.outline``: push and pull candidates from the outline of the observed cloud.
 
-Needs no shape model: the object is the part of the cloud above the table plane (z = 0), its
-outline the 2D convex hull of those points. Pushes start on the outline and go inwards along
-the edge normal perturbed by U(-jitter, jitter); pulls grasp across the narrowest chord
-through a point of the object and move along a direction drawn around ``pull_towards_rad``.
+Needs no shape model: the object is the largest connected cluster (on a 2D grid) of the
+points between the table plane (z = 0) and ``max_object_height_m`` — which leaves out a
+gripper hovering in view — and its outline is the 2D convex hull of that cluster. Pushes start on the outline and go inwards along
+the edge normal perturbed by U(-jitter, jitter); pulls grasp across the outline along a direction in which the outline fits the gripper, and move along a direction drawn
+around ``pull_towards_rad``.
 """
 
 from __future__ import annotations
@@ -13,12 +14,13 @@ from typing import Literal
 
 import numpy as np
 from pydantic import Field
+from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
 from vistac.protocols import Scene
-from vistac.types import Action, FloatArray, Pull, Push
+from vistac.types import Action, FloatArray, Pull, Push, action_point
 
 log = logging.getLogger(__name__)
 
@@ -38,8 +40,14 @@ class OutlineSampler(Component):
         speed_mps: float = Field(0.02, gt=0, le=0.25)
         duration_s: float = Field(5.0, gt=0)
         table_clearance_m: float = Field(0.008, ge=0, description="points this far above z=0 are object")
+        max_object_height_m: float = Field(0.1, gt=0, description="points higher up are not the object")
+        cluster_cell_m: float = Field(0.01, gt=0, description="grid cell for connected clusters")
         jitter_deg: float = Field(5.0, ge=0, le=45, description="push direction noise around the normal")
-        max_grasp_width_m: float = Field(0.12, gt=0, description="widest chord the gripper can close on")
+        max_grasp_width_m: float = Field(0.12, gt=0, description="widest object the gripper can close on")
+        finger_half_width_m: float = Field(0.03, ge=0, description="keeps grasps off the outline's ends")
+        workspace_xy_m: tuple[tuple[float, float], tuple[float, float]] = (
+            (-0.45, 0.45), (0.2, 0.8))
+        """((x min, x max), (y min, y max)): the gripper's path must stay inside."""
         pull_towards_rad: float = Field(-np.pi / 2, description="mean pull direction (-y: towards the robot)")
         pull_spread_rad: float = Field(np.pi / 3, ge=0, description="pull direction ~ U(+-spread)")
 
@@ -53,13 +61,25 @@ class OutlineSampler(Component):
         actions: list[Action] = []
         for kind in kinds:
             action = self._push(hull_xy, rng) if kind == "push" else self._pull(hull_xy, rng)
-            if action is not None:
+            if action is not None and self._reachable(action):
                 actions.append(action)
         return actions
 
+    def _reachable(self, action: Action) -> bool:
+        """Whether the interaction's start and end points lie in the workspace."""
+        start = action_point(action)
+        heading = np.array([np.cos(action.pd_rad), np.sin(action.pd_rad)])
+        end = start + heading * action.speed_mps * action.duration_s
+        (x_min, x_max), (y_min, y_max) = self.config.workspace_xy_m
+        points = np.stack([start, end])
+        return bool(np.all((points[:, 0] >= x_min) & (points[:, 0] <= x_max)
+                           & (points[:, 1] >= y_min) & (points[:, 1] <= y_max)))
+
     def outline(self, points_m: FloatArray) -> FloatArray:
         """Counter-clockwise convex outline [K, 2] of the points above the table."""
-        above = points_m[points_m[:, 2] > self.config.table_clearance_m, :2]
+        height = points_m[:, 2]
+        keep = (height > self.config.table_clearance_m) & (height < self.config.max_object_height_m)
+        above = largest_cluster(points_m[keep, :2], self.config.cluster_cell_m)
         if len(above) < MIN_OBJECT_POINTS:
             raise DataError(
                 f"actions.outline: only {len(above)} points above the table "
@@ -78,13 +98,57 @@ class OutlineSampler(Component):
         return Push(point, inward_rad, self.config.speed_mps, self.config.duration_s)
 
     def _pull(self, hull_xy: FloatArray, rng: np.random.Generator) -> Pull | None:
-        weights = rng.dirichlet(np.ones(len(hull_xy)))
-        inside = weights @ hull_xy
-        centre, axis_rad, width_m = narrowest_chord(hull_xy, inside)
-        if width_m > self.config.max_grasp_width_m:
+        """Fingers close along a direction in which the whole outline fits the gripper, at a
+        random offset across it (so either link of a two-link object may be grasped)."""
+        angles = np.linspace(0.0, np.pi, CHORD_DIRECTIONS, endpoint=False)
+        fits = angles[outline_widths(hull_xy, angles) <= self.config.max_grasp_width_m]
+        if len(fits) == 0:
             return None
+        axis_rad = float(rng.choice(fits))
+        across = np.array([-np.sin(axis_rad), np.cos(axis_rad)])
+        offsets = hull_xy @ across
+        margin = min(self.config.finger_half_width_m, 0.4 * np.ptp(offsets))
+        offset = rng.uniform(offsets.min() + margin, offsets.max() - margin)
+        centroid = hull_xy.mean(axis=0)
+        point = centroid + (offset - centroid @ across) * across
+        midpoint, width_m = chord(hull_xy, point, axis_rad)
         pd = self.config.pull_towards_rad + rng.uniform(-1, 1) * self.config.pull_spread_rad
-        return Pull(centre, float(pd), self.config.speed_mps, axis_rad, self.config.duration_s)
+        return Pull(midpoint, float(pd), self.config.speed_mps, axis_rad, self.config.duration_s)
+
+
+def outline_widths(hull_xy: FloatArray, angles_rad: FloatArray) -> FloatArray:
+    """Width of a polygon [K, 2] along each direction [D]: [D] (the caliper distance)."""
+    directions = np.stack([np.cos(angles_rad), np.sin(angles_rad)], axis=1)
+    projections = hull_xy @ directions.T  # [K, D]
+    return projections.max(axis=0) - projections.min(axis=0)
+
+
+def chord(hull_xy: FloatArray, point: FloatArray, angle_rad: float) -> tuple[FloatArray, float]:
+    """The chord of a convex polygon [K, 2] through ``point`` [2] along ``angle_rad``:
+    (midpoint [2], length m)."""
+    direction = np.array([np.cos(angle_rad), np.sin(angle_rad)])
+    edges = np.roll(hull_xy, -1, axis=0) - hull_xy
+    offset = hull_xy - point
+    cross = direction[0] * edges[:, 1] - direction[1] * edges[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (offset[:, 0] * edges[:, 1] - offset[:, 1] * edges[:, 0]) / cross
+        u = (offset[:, 0] * direction[1] - offset[:, 1] * direction[0]) / cross
+    hit = (np.abs(cross) > 1e-12) & (u >= 0) & (u <= 1)
+    t_max, t_min = t[hit].max(), t[hit].min()
+    return point + direction * 0.5 * (t_max + t_min), float(t_max - t_min)
+
+
+def largest_cluster(points_xy: FloatArray, cell_m: float) -> FloatArray:
+    """The points [K, 2] of the largest 8-connected cluster of occupied grid cells."""
+    if len(points_xy) == 0:
+        return points_xy
+    cells = np.floor((points_xy - points_xy.min(axis=0)) / cell_m).astype(int)
+    grid = np.zeros(cells.max(axis=0) + 1, dtype=bool)
+    grid[cells[:, 0], cells[:, 1]] = True
+    labels, _ = ndimage.label(grid, structure=np.ones((3, 3)))
+    point_labels = labels[cells[:, 0], cells[:, 1]]
+    biggest = np.bincount(point_labels)[1:].argmax() + 1
+    return points_xy[point_labels == biggest]
 
 
 def point_on_outline(hull_xy: FloatArray, fraction: float) -> tuple[FloatArray, FloatArray]:
@@ -98,24 +162,3 @@ def point_on_outline(hull_xy: FloatArray, fraction: float) -> tuple[FloatArray, 
     point = hull_xy[i] + edges[i] * (s - cumulative[i]) / lengths[i]
     outward = np.array([edges[i, 1], -edges[i, 0]]) / lengths[i]
     return point, outward
-
-
-def narrowest_chord(hull_xy: FloatArray, point: FloatArray) -> tuple[FloatArray, float, float]:
-    """The shortest chord of a convex polygon [K, 2] through ``point`` [2], over
-    CHORD_DIRECTIONS directions: (chord midpoint [2], direction rad, length m)."""
-    angles = np.linspace(0.0, np.pi, CHORD_DIRECTIONS, endpoint=False)
-    directions = np.stack([np.cos(angles), np.sin(angles)], axis=1)  # [D, 2]
-    starts, edges = hull_xy, np.roll(hull_xy, -1, axis=0) - hull_xy  # [K, 2]
-    # Solve point + t d = start + u e for every direction/edge pair.
-    cross = directions[:, None, 0] * edges[None, :, 1] - directions[:, None, 1] * edges[None, :, 0]
-    offset = starts[None] - point[None, None]  # [1, K, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (offset[..., 0] * edges[None, :, 1] - offset[..., 1] * edges[None, :, 0]) / cross
-        u = (offset[..., 0] * directions[:, None, 1] - offset[..., 1] * directions[:, None, 0]) / cross
-    hit = (np.abs(cross) > 1e-12) & (u >= 0) & (u <= 1)
-    t_max = np.where(hit, t, -np.inf).max(axis=1)
-    t_min = np.where(hit, t, np.inf).min(axis=1)
-    lengths = t_max - t_min
-    best = int(np.argmin(lengths))
-    midpoint = point + directions[best] * 0.5 * (t_max[best] + t_min[best])
-    return midpoint, float(angles[best]), float(lengths[best])

@@ -1,0 +1,68 @@
+"""Run every benchmark and write BENCHMARKS.md (median of repeats, machine, peers).
+
+Usage: python benchmarks/run_all.py [--out BENCHMARKS.md] [--repeats N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib
+import os
+import platform
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import Row  # noqa: E402
+
+MODULES = ("bench_sim", "bench_cli")
+
+
+def machine() -> str:
+    cpu = "unknown CPU"
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()}"
+
+
+def render(rows: list[Row], repeats: int) -> str:
+    lines = [
+        "# Benchmarks",
+        "",
+        f"Machine: {machine()}. Date: {datetime.date.today().isoformat()}. "
+        f"Each figure is the median of {repeats} repeats after a warm-up; peers are measured in "
+        "the same run. Regenerate with `make bench`.",
+        "",
+        "| benchmark | vistac | target | met | peer (same run) | note |",
+        "|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        peer = f"{row.peer}: {row.peer_value:.4g} {row.unit}" if row.peer_value is not None else "-"
+        lines.append(f"| {row.name} | {row.value:.4g} {row.unit} | {row.target} | "
+                     f"{'yes' if row.passed else '**no**'} | {peer} | {row.note} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--out", type=Path, default=Path("BENCHMARKS.md"))
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args()
+    rows: list[Row] = []
+    for name in MODULES:
+        print(f"running {name} ...", flush=True)
+        rows += importlib.import_module(name).run(args.repeats)
+    text = render(rows, args.repeats)
+    args.out.write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,244 @@
+"""Executes a push or a pull with any ``Arm`` and ``Gripper`` (simulated or real).
+
+An action is a list of phases, each stepped once per control period:
+
+- push: ``lift`` to the approach height, ``close`` the fingers, ``approach`` above the
+  pre-contact point (``standoff_m`` behind the contact point along -pd, the closing axis along
+  pd so that the leading pad faces the push), ``descend`` to finger height, ``push`` along pd
+  at the action's speed for ``duration_s`` (the observed interaction), ``retreat`` upwards.
+- pull: ``lift``, ``open``, ``approach`` above the grasp point with the fingers closing along
+  ``grasp_axis_rad``, ``descend``, ``grasp`` (close until the fingers stall), ``pull`` along pd
+  for ``duration_s`` (observed), ``release`` and ``retreat``.
+
+Moves use a proportional velocity command towards the waypoint, capped at the arm's speed,
+and end within ``tolerance_m`` / ``yaw_tolerance_rad``. Yaw targets are taken modulo pi (the
+two fingers are symmetric), nearest to the current yaw.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import Field
+
+from vistac.component import Component, ComponentConfig, ComponentContext
+from vistac.errors import HardwareError, PluginError
+from vistac.protocols import Arm, Gripper
+from vistac.types import Action, FloatArray, Pull, Push
+
+log = logging.getLogger(__name__)
+
+_GRIPPER_SETTLE_S = 0.15
+
+
+def _wrap(angle_rad: float, period_rad: float = 2.0 * math.pi) -> float:
+    """``angle_rad`` wrapped into [-period/2, period/2)."""
+    return (angle_rad + 0.5 * period_rad) % period_rad - 0.5 * period_rad
+
+
+@dataclass
+class _Phase:
+    """One step of an action. ``enter`` runs once, then per period ``finished`` is checked
+    before ``command``; ``interaction`` marks the observed part."""
+
+    name: str
+    enter: Callable[[], None]
+    finished: Callable[[float], bool]
+    command: Callable[[], None]
+    timeout_s: float
+    interaction: bool = False
+
+
+class CartesianExecutor(Component):
+    """Implements the ``Executor`` protocol using only the Arm and Gripper protocols."""
+
+    kind = "executor"
+
+    class Config(ComponentConfig):
+        standoff_m: float = Field(default=0.01, ge=0.0)
+        """Gap between the pushing pad and the contact point before the push starts."""
+        pusher_offset_m: float = Field(default=0.01, ge=0.0)
+        """Distance from the TCP to the leading pad face with the fingers closed."""
+        approach_height_m: float = Field(default=0.1, gt=0.0)
+        finger_height_m: float = Field(default=0.02, gt=0.0)
+        tolerance_m: float = Field(default=0.002, gt=0.0)
+        yaw_tolerance_rad: float = Field(default=0.02, gt=0.0)
+        gain_per_s: float = Field(default=3.0, gt=0.0)
+        max_yaw_rate_rad_s: float = Field(default=0.5, gt=0.0)
+        move_timeout_s: float = Field(default=60.0, gt=0.0)
+        gripper_timeout_s: float = Field(default=5.0, gt=0.0)
+        park_pose: tuple[float, float, float, float] | None = (0.0, 0.25, 0.12, 0.0)
+        """Where the TCP waits after an action (x, y, z m, yaw rad), out of the cameras'
+        way; None stays above the object."""
+
+    def __init__(self, config: Config, ctx: ComponentContext) -> None:
+        super().__init__(config, ctx)
+        arm, gripper = ctx.find("arm"), ctx.find("gripper")
+        if not isinstance(arm, Arm) or not isinstance(gripper, Gripper):
+            raise PluginError("the cartesian executor needs an 'arm' and a 'gripper' component")
+        self.arm: Arm = arm
+        self.gripper: Gripper = gripper
+        self._phases: list[_Phase] = []
+        self._index = 0
+        self._entered = False
+        self._elapsed_s = 0.0
+        self._target = np.zeros(4)
+
+    # -- Executor protocol ----------------------------------------------------------------
+
+    def start(self, action: Action) -> None:
+        self._phases = (
+            self._push_phases(action) if isinstance(action, Push) else self._pull_phases(action)
+        )
+        self._index, self._entered = 0, False
+        log.debug("executing %s: %s", action.kind, [p.name for p in self._phases])
+
+    def step(self, dt_s: float) -> tuple[str, bool]:
+        while self._index < len(self._phases):
+            phase = self._phases[self._index]
+            if not self._entered:
+                phase.enter()
+                self._entered, self._elapsed_s = True, 0.0
+            if phase.finished(self._elapsed_s):
+                self._index, self._entered = self._index + 1, False
+                continue
+            if self._elapsed_s > phase.timeout_s:
+                self.abort()
+                raise HardwareError(
+                    f"executor: phase {phase.name!r} timed out after {phase.timeout_s} s"
+                )
+            phase.command()
+            self._elapsed_s += dt_s
+            return phase.name, phase.interaction
+        self.arm.stop()
+        return "done", False
+
+    def abort(self) -> None:
+        self.arm.stop()
+        self.gripper.stop()
+        self._index = len(self._phases)
+
+    # -- phase lists ----------------------------------------------------------------------
+
+    def _push_phases(self, push: Push) -> list[_Phase]:
+        direction = np.array([math.cos(push.pd_rad), math.sin(push.pd_rad)])
+        back_m = self.config.standoff_m + self.config.pusher_offset_m
+        pre_xy = push.cp_m - back_m * direction
+        return [
+            self._move_phase("lift", lambda pose: (pose[0], pose[1], self._safe_z, pose[3])),
+            self._gripper_phase("close", self.gripper.close),
+            self._move_phase("approach", lambda pose: (*pre_xy, self._safe_z, push.pd_rad)),
+            self._move_phase("descend", lambda pose: (*pre_xy, self._finger_z, pose[3])),
+            self._interact_phase("push", direction, push.speed_mps, push.duration_s),
+            self._move_phase("retreat", lambda pose: (pose[0], pose[1], self._safe_z, pose[3])),
+            *self._park_phases(),
+        ]
+
+    def _pull_phases(self, pull: Pull) -> list[_Phase]:
+        direction = np.array([math.cos(pull.pd_rad), math.sin(pull.pd_rad)])
+        grasp_xy = pull.gp_m
+        return [
+            self._move_phase("lift", lambda pose: (pose[0], pose[1], self._safe_z, pose[3])),
+            self._gripper_phase("open", self.gripper.open),
+            self._move_phase(
+                "approach", lambda pose: (*grasp_xy, self._safe_z, pull.grasp_axis_rad)
+            ),
+            self._move_phase("descend", lambda pose: (*grasp_xy, self._finger_z, pose[3])),
+            self._gripper_phase("grasp", self.gripper.close, check_grasp=True),
+            self._interact_phase("pull", direction, pull.speed_mps, pull.duration_s),
+            self._gripper_phase("release", self.gripper.open),
+            self._move_phase("retreat", lambda pose: (pose[0], pose[1], self._safe_z, pose[3])),
+            *self._park_phases(),
+        ]
+
+    def _park_phases(self) -> list[_Phase]:
+        park = self.config.park_pose
+        if park is None:
+            return []
+        return [
+            self._move_phase("park_over", lambda pose: (park[0], park[1], self._safe_z, park[3])),
+            self._move_phase("park", lambda pose: park),
+        ]
+
+    @property
+    def _safe_z(self) -> float:
+        return self.config.approach_height_m
+
+    @property
+    def _finger_z(self) -> float:
+        return self.config.finger_height_m
+
+    # -- phase kinds ----------------------------------------------------------------------
+
+    def _move_phase(self, name: str, target: Callable[[FloatArray], tuple[float, ...]]) -> _Phase:
+        """Move to ``target(current pose)`` (x, y, z, yaw; yaw taken modulo pi)."""
+
+        def enter() -> None:
+            pose = self.arm.state().pose
+            goal = np.array(target(pose), dtype=np.float64)
+            goal[3] = pose[3] + _wrap(goal[3] - pose[3], math.pi)
+            self._target = goal
+
+        return _Phase(
+            name,
+            enter,
+            lambda _: self._at_target(),
+            self._command_towards_target,
+            self.config.move_timeout_s,
+        )
+
+    def _at_target(self) -> bool:
+        error = self._target - self.arm.state().pose
+        return bool(
+            np.linalg.norm(error[:3]) < self.config.tolerance_m
+            and abs(_wrap(error[3])) < self.config.yaw_tolerance_rad
+        )
+
+    def _command_towards_target(self) -> None:
+        error = self._target - self.arm.state().pose
+        velocity = self.config.gain_per_s * error[:3]
+        speed = float(np.linalg.norm(velocity))
+        if speed > self.arm.max_speed_mps:
+            velocity *= self.arm.max_speed_mps / speed
+        yaw_rate = float(
+            np.clip(
+                self.config.gain_per_s * _wrap(error[3]),
+                -self.config.max_yaw_rate_rad_s,
+                self.config.max_yaw_rate_rad_s,
+            )
+        )
+        self.arm.command_velocity(np.append(velocity, yaw_rate))
+
+    def _gripper_phase(
+        self, name: str, command: Callable[[], None], check_grasp: bool = False
+    ) -> _Phase:
+        """Send ``command`` once, hold the arm, wait until the fingers stop."""
+
+        def finished(elapsed_s: float) -> bool:
+            state = self.gripper.state()
+            if elapsed_s < _GRIPPER_SETTLE_S or state.moving:
+                return False
+            if check_grasp and not state.object_detected:
+                log.warning("grasp: the fingers closed on nothing (width %.4f m)", state.width_m)
+            return True
+
+        return _Phase(name, command, finished, self.arm.stop, self.config.gripper_timeout_s)
+
+    def _interact_phase(
+        self, name: str, direction: FloatArray, speed_mps: float, duration_s: float
+    ) -> _Phase:
+        """Move along ``direction`` [2] at ``speed_mps`` for ``duration_s`` (observed)."""
+        speed = min(speed_mps, self.arm.max_speed_mps)
+        twist = np.array([*(speed * direction), 0.0, 0.0])
+        return _Phase(
+            name,
+            enter=lambda: None,
+            finished=lambda elapsed_s: elapsed_s >= duration_s - 1e-9,
+            command=lambda: self.arm.command_velocity(twist),
+            timeout_s=duration_s + 1.0,
+            interaction=True,
+        )

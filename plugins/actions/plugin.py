@@ -1,0 +1,15 @@
+"""Registers the action components. Imports nothing heavy."""
+
+from __future__ import annotations
+
+from vistac import hookimpl
+from vistac.registry import Registry
+
+_PACKAGE = "vistac.plugins.actions"
+
+
+@hookimpl
+def vistac_register(registry: Registry) -> None:
+    registry.add("action_sampler", "actions.outline", f"{_PACKAGE}.outline:OutlineSampler")
+    registry.add("action_selector", "actions.random", f"{_PACKAGE}.selectors:RandomSelector")
+    registry.add("executor", "actions.cartesian", f"{_PACKAGE}.executor:CartesianExecutor")

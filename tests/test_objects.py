@@ -1,0 +1,190 @@
+"""Object definitions: footprints, validation, loading, the generated object set."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from vistac.errors import ConfigError
+from vistac.objects import (
+    FOOTPRINTS,
+    HINGE_GAP_M,
+    ObjectSpec,
+    attachment,
+    footprint_polygon,
+    generate_configurations,
+    link_frames,
+    load_object,
+    object_from_dict,
+    points_inside,
+    polygon_area,
+    split_configurations,
+    write_configurations,
+)
+
+SIZES_MM = {
+    "rect1": (90, 90), "rect2": (90, 112.5), "rect3": (135, 90),
+    "tri1": (126, 126), "tri2": (151.2, 126), "tri3": (176.4, 126),
+    "ellip1": (104.9, 104.9), "ellip2": (104.8, 131), "ellip3": (104.8, 157.2),
+    "hexagon": (121.1, 104.9), "butter": (95.5, 157.3),
+}  # fmt: skip
+
+SKILL_OBJECTS = Path(__file__).resolve().parents[1] / "skills" / "objects"
+
+
+def _link(**overrides: object) -> dict[str, object]:
+    link: dict[str, object] = {"footprint": "rect1", "height_m": 0.05, "mass_kg": 0.5}
+    link["friction"] = 0.3
+    link.update(overrides)
+    return link
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "thing.yaml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize("name", FOOTPRINTS)
+def test_footprint_size_orientation_and_centroid(name: str) -> None:
+    polygon = footprint_polygon(name)
+    extent_mm = (polygon.max(axis=0) - polygon.min(axis=0)) * 1000.0
+    np.testing.assert_allclose(extent_mm, SIZES_MM[name], atol=0.5)
+    edges = np.roll(polygon, -1, axis=0) - polygon
+    turns = (
+        edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1]
+        - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    )
+    assert np.all(turns > 0), "counter-clockwise and convex"
+    area = polygon_area(polygon)
+    x, y = polygon[:, 0], polygon[:, 1]
+    cross = x * np.roll(y, -1) - np.roll(x, -1) * y
+    centroid_x = ((x + np.roll(x, -1)) * cross).sum() / (6 * area)
+    centroid_y = ((y + np.roll(y, -1)) * cross).sum() / (6 * area)
+    np.testing.assert_allclose([centroid_x, centroid_y], 0.0, atol=1e-9)
+
+
+def test_triangle_area_is_half_the_legs_product() -> None:
+    assert polygon_area(footprint_polygon("tri2")) == pytest.approx(0.5 * 0.1512 * 0.126)
+
+
+def test_com_outside_footprint_is_rejected_with_its_path() -> None:
+    spec: dict[str, Any] = {"name": "x", "type": "homogeneous"}
+    spec["links"] = [_link(com_m=[0.05, 0.0])]
+    spec["pose"] = [0, 0.45, 0]
+    with pytest.raises(ConfigError) as error:
+        _validate(spec)
+    assert "links.0" in str(error.value)
+    assert "outside footprint 'rect1'" in str(error.value)
+
+
+def _validate(data: dict[str, Any]) -> ObjectSpec:
+    return object_from_dict(data, "inline")
+
+
+def test_load_errors_name_file_and_yaml_path(tmp_path: Path) -> None:
+    path = _write(
+        tmp_path,
+        "name: x\ntype: homogeneous\npose: [0, 0.45, 0]\nlinks:\n"
+        "  - {footprint: rect1, height_m: 0.05, mass_kg: 3.0, friction: 0.3}\n",
+    )
+    with pytest.raises(ConfigError) as error:
+        load_object(path)
+    message = str(error.value)
+    assert str(path) in message
+    assert "links.0.mass_kg" in message
+    assert "less than or equal to 1.6" in message
+
+
+def test_load_rejects_unknown_footprint_and_bad_yaml(tmp_path: Path) -> None:
+    bad_footprint = _write(
+        tmp_path,
+        "name: x\ntype: homogeneous\npose: [0, 0.45, 0]\nlinks:\n"
+        "  - {footprint: circle, height_m: 0.05, mass_kg: 1.0, friction: 0.3}\n",
+    )
+    with pytest.raises(ConfigError, match=r"links\.0\.footprint"):
+        load_object(bad_footprint)
+    with pytest.raises(ConfigError, match="invalid YAML"):
+        load_object(_write(tmp_path, "name: [unclosed\n"))
+    with pytest.raises(ConfigError, match="must be a mapping"):
+        load_object(_write(tmp_path, "- 1\n- 2\n"))
+
+
+def test_structure_rules() -> None:
+    two_links = [_link(), _link()]
+    base = {"name": "x", "pose": [0, 0.45, 0]}
+    with pytest.raises(ConfigError, match="articulated objects"):
+        _validate({**base, "type": "articulated", "links": two_links})
+    with pytest.raises(ConfigError, match="has 2 link"):
+        _validate({**base, "type": "heterogeneous", "links": [_link()]})
+    with pytest.raises(ConfigError, match=r"joint\.friction_nm"):
+        _validate(
+            {**base, "type": "articulated", "links": two_links, "joint": {"friction_nm": 0.9}}
+        )
+
+
+def test_articulated_attachment_places_hinge_between_touching_rectangles() -> None:
+    spec = _validate(
+        {
+            "name": "x", "type": "articulated", "links": [_link(), _link()],
+            "pose": [0.1, 0.4, np.pi / 2], "joint": {"friction_nm": 0.1},
+        }
+    )  # fmt: skip
+    offset, hinge = attachment(spec)
+    np.testing.assert_allclose(offset, [0.09 + HINGE_GAP_M, 0.0])
+    assert hinge is not None
+    np.testing.assert_allclose(hinge, [0.045 + HINGE_GAP_M / 2, 0.0])
+    # Link 0 turned by 90 degrees: link 1 sits along world +y.
+    np.testing.assert_allclose(link_frames(spec)[1], [0.1, 0.4 + 0.094, np.pi / 2], atol=1e-12)
+
+
+def test_generator_counts_ranges_and_reproducibility() -> None:
+    specs = generate_configurations(seed=3)
+    assert [
+        sum(s.type == kind for s in specs)
+        for kind in ("homogeneous", "heterogeneous", "articulated")
+    ] == [40, 40, 40]
+    assert len({s.name for s in specs}) == 120
+    assert all(len(s.links) == (1 if s.type == "homogeneous" else 2) for s in specs)
+    assert all((s.joint is not None) == (s.type == "articulated") for s in specs)
+    masses = np.array([link.mass_kg for s in specs for link in s.links])
+    assert masses.min() >= 0.2 and masses.max() <= 1.6 and masses.std() > 0.3
+    for spec in specs:
+        for link in spec.links:
+            assert points_inside(footprint_polygon(link.footprint), np.array([link.com_m]))[0]
+    assert generate_configurations(seed=3) == specs
+    assert generate_configurations(seed=4) != specs
+
+
+def test_split_is_stratified_disjoint_and_reproducible() -> None:
+    specs = generate_configurations(seed=1)
+    split = split_configurations(specs, seed=1)
+    assert {name: len(names) for name, names in split.items()} == {
+        "train": 96,
+        "val": 12,
+        "test": 12,
+    }
+    kinds = {s.name: s.type for s in specs}
+    for names in split.values():
+        assert {kinds[n] for n in names} == {"homogeneous", "heterogeneous", "articulated"}
+    assert sorted(name for names in split.values() for name in names) == sorted(kinds)
+    assert split_configurations(specs, seed=1) == split
+    assert split_configurations(specs, seed=2) != split
+
+
+def test_write_configurations_round_trips(tmp_path: Path) -> None:
+    split = write_configurations(seed=5, out_dir=tmp_path)
+    specs = {s.name: s for s in generate_configurations(seed=5)}
+    assert len(list(tmp_path.glob("*.yaml"))) == 120
+    assert (tmp_path / "split.json").is_file()
+    for name in split["test"]:
+        assert load_object(tmp_path / f"{name}.yaml") == specs[name]
+
+
+def test_skill_object_library_loads() -> None:
+    names = {path.stem for path in SKILL_OBJECTS.glob("*.yaml")}
+    assert names >= {*FOOTPRINTS, "hetero_rect_tri", "artic_rect_rect"}
+    for path in SKILL_OBJECTS.glob("*.yaml"):
+        assert load_object(path).name == path.stem
