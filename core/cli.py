@@ -144,8 +144,10 @@ def cmd_tree(args: argparse.Namespace) -> int:
 def cmd_objects_generate(args: argparse.Namespace) -> int:
     from vistac.objects import write_configurations
 
-    written = write_configurations(args.seed, args.out)
-    print(f"wrote {len(written)} object configurations and split.json to {args.out}")
+    split = write_configurations(args.seed, args.out)
+    counts = ", ".join(f"{len(names)} {part}" for part, names in split.items())
+    print(f"wrote {sum(map(len, split.values()))} object configurations ({counts}) "
+          f"and split.json to {args.out}")
     return 0
 
 

@@ -25,7 +25,7 @@ from vistac.types import Action, FloatArray, Pull, Push, action_point
 log = logging.getLogger(__name__)
 
 MIN_OBJECT_POINTS = 20
-CHORD_DIRECTIONS = 36
+PULL_ATTEMPTS = 8
 
 
 class OutlineSampler(Component):
@@ -98,29 +98,21 @@ class OutlineSampler(Component):
         return Push(point, inward_rad, self.config.speed_mps, self.config.duration_s)
 
     def _pull(self, hull_xy: FloatArray, rng: np.random.Generator) -> Pull | None:
-        """Fingers close along a direction in which the whole outline fits the gripper, at a
-        random offset across it (so either link of a two-link object may be grasped)."""
-        angles = np.linspace(0.0, np.pi, CHORD_DIRECTIONS, endpoint=False)
-        fits = angles[outline_widths(hull_xy, angles) <= self.config.max_grasp_width_m]
-        if len(fits) == 0:
-            return None
-        axis_rad = float(rng.choice(fits))
-        across = np.array([-np.sin(axis_rad), np.cos(axis_rad)])
-        offsets = hull_xy @ across
-        margin = min(self.config.finger_half_width_m, 0.4 * np.ptp(offsets))
-        offset = rng.uniform(offsets.min() + margin, offsets.max() - margin)
-        centroid = hull_xy.mean(axis=0)
-        point = centroid + (offset - centroid @ across) * across
-        midpoint, width_m = chord(hull_xy, point, axis_rad)
-        pd = self.config.pull_towards_rad + rng.uniform(-1, 1) * self.config.pull_spread_rad
-        return Pull(midpoint, float(pd), self.config.speed_mps, axis_rad, self.config.duration_s)
-
-
-def outline_widths(hull_xy: FloatArray, angles_rad: FloatArray) -> FloatArray:
-    """Width of a polygon [K, 2] along each direction [D]: [D] (the caliper distance)."""
-    directions = np.stack([np.cos(angles_rad), np.sin(angles_rad)], axis=1)
-    projections = hull_xy @ directions.T  # [K, D]
-    return projections.max(axis=0) - projections.min(axis=0)
+        """Fingers close along a random direction at a random offset across it (kept
+        ``finger_half_width_m`` from the outline's ends, so either link of a two-link object
+        may be grasped); the chord there must fit the gripper. None after a few misses."""
+        for _ in range(PULL_ATTEMPTS):
+            axis_rad = float(rng.uniform(0.0, np.pi))
+            across = np.array([-np.sin(axis_rad), np.cos(axis_rad)])
+            offsets = hull_xy @ across
+            margin = min(self.config.finger_half_width_m, 0.4 * np.ptp(offsets))
+            offset = rng.uniform(offsets.min() + margin, offsets.max() - margin)
+            centroid = hull_xy.mean(axis=0)
+            midpoint, width_m = chord(hull_xy, centroid + (offset - centroid @ across) * across, axis_rad)
+            if width_m <= self.config.max_grasp_width_m:
+                pd = self.config.pull_towards_rad + rng.uniform(-1, 1) * self.config.pull_spread_rad
+                return Pull(midpoint, float(pd), self.config.speed_mps, axis_rad, self.config.duration_s)
+        return None
 
 
 def chord(hull_xy: FloatArray, point: FloatArray, angle_rad: float) -> tuple[FloatArray, float]:

@@ -1,0 +1,455 @@
+"""EMS superquadric recovery (Liu et al., CVPR 2022) with tapering: ``shape.ems``.
+
+Paper 1, III-B2/III-B3. Points are explained by a Gaussian around the closest surface point
+(approximated radially) mixed with a uniform outlier density ``p0 = 1/V`` over the points'
+bounding box. E-step: the inlier posterior of eq. 9. M-step: a few iterations of bounded
+nonlinear least squares on the posterior-weighted distances, then the noise variance in closed
+form. When the likelihood stops improving, similar candidates (swapped axes, the 45-degree
+dual, the sign-flipped and halved taper) are tried and the best replaces the current fit
+(the S-step). Multi-link objects: outliers of the fitted links are clustered and fitted again
+until fewer than ``outlier_threshold_points`` remain.
+
+Parameter vector (13, ``PARAMETER_NAMES``): a1, a2, a3, eps1, eps2, kappa1, kappa2, x, y, yaw,
+z, pitch, roll; rotation ``Rz(yaw) Ry(pitch) Rx(roll)``. On a table (the default) pitch = roll
+= 0 and z = a3 (the base touches z = 0), leaving 8 parameters plus the 2 of the taper.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+from scipy.optimize import least_squares
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+from scipy.special import expit, logsumexp
+
+from vistac.component import Component, ComponentConfig, ComponentContext
+from vistac.errors import DataError
+from vistac.plugins.shape.superquadric import radial_distance_m
+from vistac.types import FloatArray, PointCloud, ShapeEstimate, Superquadric
+
+logger = logging.getLogger(__name__)
+
+PARAMETER_NAMES: tuple[str, ...] = (
+    "a1_m", "a2_m", "a3_m", "eps1", "eps2", "kappa1", "kappa2",
+    "x_m", "y_m", "yaw_rad", "z_m", "pitch_rad", "roll_rad",
+)  # fmt: skip
+"""Order of the full parameter vector and of ``ShapeEstimate.uncertainty`` columns."""
+
+_SCALE, _EXPONENTS, _TAPER = slice(0, 3), slice(3, 5), slice(5, 7)
+_A2, _A3, _KAPPA1, _KAPPA2, _X, _Y, _YAW, _Z, _PITCH, _ROLL = 1, 2, 5, 6, 7, 8, 9, 10, 11, 12
+_TAPER_INDICES = (_KAPPA1, _KAPPA2)
+_TILT_INDICES = (_Z, _PITCH, _ROLL)
+_MIN_SCALE_M = 0.002
+_EXPONENT_BOUNDS = (0.1, 2.0)
+_INIT_EXPONENT = 0.5
+_INIT_PERCENTILES = (2.0, 98.0)
+_FD_STEP = 1e-6
+_FD_FLOOR = 0.01
+_MIN_VOLUME_M3 = 1e-9
+
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class EMSOptions:
+    """Settings of one EMS fit (see ``EMSEstimator.Config`` for their meaning)."""
+
+    outlier_ratio: float = 0.2
+    max_iterations: int = 20
+    max_switches: int = 2
+    m_step_evaluations: int = 3
+    tolerance_nats: float = 1e-3
+    min_noise_m: float = 5e-4
+    taper: bool = True
+    on_table: bool = True
+
+
+@dataclass(frozen=True)
+class EMSResult:
+    """One fitted superquadric.
+
+    params: [13] in ``PARAMETER_NAMES`` order; std: [13] standard deviations (0 where the
+    parameter is fixed by the model); inlier_probability: [N] posterior of eq. 9 per point.
+    """
+
+    superquadric: Superquadric
+    params: FloatArray
+    std: FloatArray
+    inlier_probability: FloatArray
+    noise_m: float
+    nll: float
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The points to fit and what the model may vary."""
+
+    points_m: FloatArray
+    free: IntArray
+    on_table: bool
+    lower: FloatArray
+    upper: FloatArray
+    log_outlier_density: float
+    options: EMSOptions
+
+    def expand(self, free_values: FloatArray, base: FloatArray) -> FloatArray:
+        """Full parameter vectors [B, 13] from free values [B, F] on top of ``base`` [13]."""
+        full = np.repeat(base[None, :], len(free_values), axis=0)
+        full[:, self.free] = free_values
+        if self.on_table:
+            full[:, _Z] = full[:, _A3]
+        return full
+
+    def distances(self, full: FloatArray) -> FloatArray:
+        """Radial distance of every point to each superquadric: full [B, 13] -> [B, N]."""
+        rotation = _rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
+        centre = full[:, [_X, _Y, _Z]]
+        local = np.einsum("nj,bjk->bnk", self.points_m, rotation)
+        local -= np.einsum("bj,bjk->bk", centre, rotation)[:, None, :]
+        return radial_distance_m(local, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER])
+
+    def log_inlier_density(self, distance_m: FloatArray, noise_var_m2: float) -> FloatArray:
+        return -1.5 * np.log(2 * np.pi * noise_var_m2) - distance_m**2 / (2 * noise_var_m2)
+
+    def posterior(self, distance_m: FloatArray, noise_var_m2: float) -> FloatArray:
+        """Inlier probability of eq. 9 per point: [..., N]."""
+        ratio = self.options.outlier_ratio
+        log_outlier = self.log_outlier_density + np.log(ratio / (1 - ratio))
+        return expit(self.log_inlier_density(distance_m, noise_var_m2) - log_outlier)
+
+    def nll(self, distance_m: FloatArray, noise_var_m2: float) -> FloatArray:
+        """Negative log-likelihood of the Gaussian-uniform mixture (eq. 4): [...]."""
+        ratio = self.options.outlier_ratio
+        terms = np.stack(np.broadcast_arrays(
+            np.log(1 - ratio) + self.log_inlier_density(distance_m, noise_var_m2),
+            np.log(ratio) + self.log_outlier_density,
+        ))
+        return -logsumexp(terms, axis=0).sum(axis=-1)
+
+
+def _rotation_zyx(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:
+    """Rz(yaw) Ry(pitch) Rx(roll) for angle arrays [B]. Returns [B, 3, 3]."""
+    cy, sy, cp, sp, cr, sr = (np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch),
+                              np.cos(roll), np.sin(roll))
+    return np.stack([
+        np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], axis=-1),
+        np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], axis=-1),
+        np.stack([-sp, cp * sr, cp * cr], axis=-1),
+    ], axis=-2)
+
+
+def _euler_zyx(rotation: FloatArray) -> tuple[float, float, float]:
+    """(yaw, pitch, roll) of a rotation matrix [3, 3] (inverse of :func:`_rotation_zyx`)."""
+    pitch = float(np.arctan2(-rotation[2, 0], np.hypot(rotation[0, 0], rotation[1, 0])))
+    yaw = float(np.arctan2(rotation[1, 0], rotation[0, 0]))
+    roll = float(np.arctan2(rotation[2, 1], rotation[2, 2]))
+    return yaw, pitch, roll
+
+
+def _pose(params: FloatArray) -> FloatArray:
+    """world_from_sq [4, 4] of a parameter vector [13]."""
+    pose = np.eye(4)
+    pose[:3, :3] = _rotation_zyx(params[None, _YAW], params[None, _PITCH], params[None, _ROLL])[0]
+    pose[:3, 3] = params[[_X, _Y, _Z]]
+    return pose
+
+
+def to_superquadric(params: FloatArray) -> Superquadric:
+    """The :class:`Superquadric` of a parameter vector [13]."""
+    return Superquadric(params[_SCALE].copy(), params[_EXPONENTS].copy(), _pose(params),
+                        params[_TAPER].copy())
+
+
+# ---------------------------------------------------------------------------------------------
+# Set-up: initial guess, bounds
+
+
+def _principal_frame(points_m: FloatArray, on_table: bool) -> FloatArray:
+    """Rotation [3, 3] whose columns are the principal axes (yaw only on a table)."""
+    centred = points_m - points_m.mean(axis=0)
+    if on_table:
+        _, vectors = np.linalg.eigh(centred[:, :2].T @ centred[:, :2])
+        yaw = float(np.arctan2(vectors[1, 1], vectors[0, 1]))
+        return _rotation_zyx(np.array([yaw]), np.zeros(1), np.zeros(1))[0]
+    _, vectors = np.linalg.eigh(centred.T @ centred)
+    frame = vectors[:, ::-1].copy()
+    frame[:, 2] = np.cross(frame[:, 0], frame[:, 1])
+    return frame
+
+
+def _initial_params(points_m: FloatArray, on_table: bool) -> FloatArray:
+    """Initial guess [13]: principal axes, robust extents, exponents 0.5, no taper."""
+    frame = _principal_frame(points_m, on_table)
+    low, high = np.percentile(points_m @ frame, _INIT_PERCENTILES, axis=0)
+    half = np.maximum(0.5 * (high - low), _MIN_SCALE_M)
+    centre = frame @ (0.5 * (high + low))
+    params = np.zeros(len(PARAMETER_NAMES))
+    params[_SCALE] = half
+    params[_EXPONENTS] = _INIT_EXPONENT
+    params[[_X, _Y, _Z]] = centre
+    params[[_YAW, _PITCH, _ROLL]] = _euler_zyx(frame)
+    if on_table:
+        params[_A3] = max(0.5 * float(np.percentile(points_m[:, 2], _INIT_PERCENTILES[1])),
+                          _MIN_SCALE_M)
+        params[_Z] = params[_A3]
+    return params
+
+
+def _bounds(points_m: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Lower and upper bounds [13] from the extent of the points."""
+    low, high = points_m.min(axis=0), points_m.max(axis=0)
+    extent = float(np.max(high - low))
+    lower = np.array([_MIN_SCALE_M] * 3 + [_EXPONENT_BOUNDS[0]] * 2 + [-1.0, 0.0]
+                     + list(low[:2] - extent) + [-np.inf, low[2] - extent, -np.inf, -np.inf])
+    upper = np.array([extent] * 3 + [_EXPONENT_BOUNDS[1]] * 2 + [1.0, 1.0]
+                     + list(high[:2] + extent) + [np.inf, high[2] + extent, np.inf, np.inf])
+    return lower, upper
+
+
+def _free_indices(options: EMSOptions) -> IntArray:
+    fixed = set(_TILT_INDICES if options.on_table else ())
+    fixed |= set(() if options.taper else _TAPER_INDICES)
+    return np.array([i for i in range(len(PARAMETER_NAMES)) if i not in fixed], dtype=np.int64)
+
+
+def _make_problem(points_m: FloatArray, options: EMSOptions) -> _Problem:
+    lower, upper = _bounds(points_m)
+    volume_m3 = max(float(np.prod(np.ptp(points_m, axis=0))), _MIN_VOLUME_M3)
+    return _Problem(points_m, _free_indices(options), options.on_table, lower, upper,
+                    -np.log(volume_m3), options)
+
+
+# ---------------------------------------------------------------------------------------------
+# EM with switching
+
+
+def _m_step(problem: _Problem, params: FloatArray, weights: FloatArray) -> FloatArray:
+    """A few bounded Gauss-Newton steps on sqrt(p) * distance. Returns the new params [13]."""
+    sqrt_w = np.sqrt(weights)
+    free = problem.free
+
+    def residuals(x: FloatArray) -> FloatArray:
+        return sqrt_w * problem.distances(problem.expand(x[None, :], params))[0]
+
+    def jacobian(x: FloatArray) -> FloatArray:
+        return _jacobian(problem, params, x, sqrt_w)
+
+    x0 = np.clip(params[free], problem.lower[free], problem.upper[free])
+    result = least_squares(residuals, x0, jac=jacobian, bounds=(problem.lower[free],
+                           problem.upper[free]), max_nfev=problem.options.m_step_evaluations,
+                           x_scale="jac")
+    return problem.expand(result.x[None, :], params)[0]
+
+
+def _jacobian(problem: _Problem, base: FloatArray, x: FloatArray,
+              sqrt_w: FloatArray) -> FloatArray:
+    """Forward-difference Jacobian [N, F] of the weighted residuals, in one batched pass."""
+    step = _FD_STEP * np.maximum(np.abs(x), _FD_FLOOR)
+    batch = np.vstack([x, x + np.diag(step)])
+    distances = problem.distances(problem.expand(batch, base))
+    return ((distances[1:] - distances[0]) / step[:, None] * sqrt_w).T
+
+
+def _noise_var(problem: _Problem, distance_m: FloatArray, weights: FloatArray) -> float:
+    var = float(np.sum(weights * distance_m**2) / (3 * max(float(np.sum(weights)), 1e-9)))
+    return max(var, problem.options.min_noise_m**2)
+
+
+def _candidates(params: FloatArray, options: EMSOptions) -> FloatArray:
+    """Similar superquadrics to try when EM is stuck: [C, 13]."""
+    swapped = params.copy()
+    if options.on_table:
+        swapped[[0, 1]] = params[[1, 0]]
+        swapped[_YAW] += np.pi / 2
+        out = [swapped]
+    else:
+        out = [_cyclic_axes(params, shift) for shift in (1, 2)]
+    if 0.6 < params[0] / params[1] < 1.4:
+        out.append(_dual(params))
+    if options.taper:
+        flipped = params.copy()
+        flipped[_KAPPA1] = -params[_KAPPA1]
+        halved = params.copy()
+        halved[_TAPER] = 0.5 * params[_TAPER]
+        out += [flipped, halved]
+    return np.array(out)
+
+
+def _cyclic_axes(params: FloatArray, shift: int) -> FloatArray:
+    """The same box-like extent with the axes renamed cyclically (exponents swapped)."""
+    order = np.roll(np.arange(3), -shift)
+    frame = to_superquadric(params).world_from_sq[:3, :3][:, order]
+    out = params.copy()
+    out[_SCALE] = params[_SCALE][order]
+    out[_EXPONENTS] = params[_EXPONENTS][::-1]
+    out[[_YAW, _PITCH, _ROLL]] = _euler_zyx(frame)
+    return out
+
+
+def _dual(params: FloatArray) -> FloatArray:
+    """The 45-degree dual of a near-square cross-section (eps2 -> 2 - eps2, Liu et al.)."""
+    eps2 = params[4]
+    side = min(params[0], params[1])
+    gain = ((1 - np.sqrt(2)) * eps2 + np.sqrt(2) if eps2 <= 1
+            else (np.sqrt(2) / 2 - 1) * eps2 + 2 - np.sqrt(2) / 2)
+    out = params.copy()
+    out[[0, 1]] = gain * side
+    out[4] = 2 - eps2
+    out[_YAW] += np.pi / 4
+    return out
+
+
+@dataclass
+class _State:
+    params: FloatArray
+    noise_var_m2: float
+    nll: float
+
+
+def _em_iteration(problem: _Problem, state: _State) -> _State:
+    weights = problem.posterior(problem.distances(state.params[None])[0], state.noise_var_m2)
+    params = _m_step(problem, state.params, weights)
+    distance = problem.distances(params[None])[0]
+    noise_var = _noise_var(problem, distance, weights)
+    return _State(params, noise_var, float(problem.nll(distance, noise_var)))
+
+
+def _switch(problem: _Problem, state: _State) -> _State | None:
+    """The S-step: the best improving candidate after one EM iteration, or None."""
+    candidates = _candidates(state.params, problem.options)
+    candidates = np.clip(candidates, problem.lower, problem.upper)
+    if problem.on_table:
+        candidates[:, _Z] = candidates[:, _A3]
+    nll = problem.nll(problem.distances(candidates), state.noise_var_m2)
+    for index in np.argsort(nll):
+        trial = _em_iteration(problem, _State(candidates[index], state.noise_var_m2, nll[index]))
+        if trial.nll < state.nll - problem.options.tolerance_nats * len(problem.points_m):
+            logger.debug("EMS switched to candidate %d (nll %.1f -> %.1f)", index, state.nll,
+                         trial.nll)
+            return trial
+    return None
+
+
+def _run_ems(problem: _Problem, params: FloatArray) -> _State:
+    distance = problem.distances(params[None])[0]
+    noise_var = _noise_var(problem, distance, np.ones_like(distance))
+    state = _State(params, noise_var, float(problem.nll(distance, noise_var)))
+    switches = 0
+    tolerance = problem.options.tolerance_nats * len(problem.points_m)
+    for _ in range(problem.options.max_iterations):
+        new_state = _em_iteration(problem, state)
+        improved = state.nll - new_state.nll > tolerance
+        state = new_state if new_state.nll < state.nll else state
+        if improved:
+            continue
+        if switches >= problem.options.max_switches:
+            break
+        switches += 1
+        switched = _switch(problem, state)
+        if switched is None:
+            break
+        state = switched
+    return state
+
+
+def _parameter_std(problem: _Problem, params: FloatArray, weights: FloatArray) -> FloatArray:
+    """Standard deviations [13] from the Jacobian at the optimum: sqrt(diag((J^T J)^-1) s^2)."""
+    sqrt_w = np.sqrt(weights)
+    jac = _jacobian(problem, params, params[problem.free], sqrt_w)
+    residual = sqrt_w * problem.distances(params[None])[0]
+    dof = max(float(weights.sum()) - len(problem.free), 1.0)
+    cov = np.linalg.pinv(jac.T @ jac) * float(residual @ residual) / dof
+    std = np.zeros(len(PARAMETER_NAMES))
+    std[problem.free] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    if problem.on_table:
+        std[_Z] = std[_A3]
+    return std
+
+
+def _canonical(params: FloatArray, options: EMSOptions) -> FloatArray:
+    """Resolve symmetries: kappa1 >= 0 (yaw + pi flips it); angles wrapped to (-pi, pi]."""
+    out = params.copy()
+    if out[_KAPPA1] < 0:
+        out[_KAPPA1] = -out[_KAPPA1]
+        out[_YAW] += np.pi
+    period = 2 * np.pi if options.taper else np.pi
+    if options.on_table:
+        out[_YAW] = (out[_YAW] + period / 2) % period - period / 2
+    else:
+        out[[_YAW, _PITCH, _ROLL]] = _euler_zyx(to_superquadric(out).world_from_sq[:3, :3])
+    return out
+
+
+def fit_superquadric(points_m: FloatArray, options: EMSOptions) -> EMSResult:
+    """Fit one (tapered) superquadric to points [N, 3] (N >= 10, finite) by EMS."""
+    problem = _make_problem(points_m, options)
+    state = _run_ems(problem, _initial_params(points_m, options.on_table))
+    params = _canonical(state.params, options)
+    weights = problem.posterior(problem.distances(params[None])[0], state.noise_var_m2)
+    return EMSResult(to_superquadric(params), params, _parameter_std(problem, params, weights),
+                     weights, float(np.sqrt(state.noise_var_m2)), state.nll)
+
+
+# ---------------------------------------------------------------------------------------------
+# Multi-link recovery (III-B3)
+
+
+def largest_cluster(points_m: FloatArray, radius_m: float) -> FloatArray:
+    """Indices of the largest group of points linked by gaps <= radius_m: [K]."""
+    pairs = cKDTree(points_m).query_pairs(radius_m, output_type="ndarray")
+    from scipy.sparse import coo_matrix
+
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                       shape=(len(points_m), len(points_m)))
+    _, labels = connected_components(graph, directed=False)
+    return np.flatnonzero(labels == np.bincount(labels).argmax())
+
+
+def fit_links(points_m: FloatArray, options: EMSOptions, max_links: int,
+              outlier_threshold_points: int, cluster_radius_m: float) -> list[EMSResult]:
+    """Fit superquadrics until fewer than ``outlier_threshold_points`` points are unexplained.
+
+    Each new link is fitted to the largest cluster of the points that no link explains
+    (inlier probability < 0.5); then every link is refitted to the points nearest to it.
+    """
+    links = [fit_superquadric(points_m, options)]
+    while len(links) < max_links:
+        explained = np.max([link.inlier_probability for link in links], axis=0) >= 0.5
+        unexplained = np.flatnonzero(~explained)
+        if len(unexplained) < outlier_threshold_points:
+            break
+        cluster = unexplained[largest_cluster(points_m[unexplained], cluster_radius_m)]
+        if len(cluster) < outlier_threshold_points:
+            break
+        links.append(fit_superquadric(points_m[cluster], options))
+        links = _refit_by_assignment(points_m, links, options)
+    return links
+
+
+def _refit_by_assignment(points_m: FloatArray, links: list[EMSResult],
+                         options: EMSOptions) -> list[EMSResult]:
+    """Refit each link to the points closest to it (one k-means style pass)."""
+    nearest = np.argmin([_distance_to(link, points_m) for link in links], axis=0)
+    refitted = []
+    for index, link in enumerate(links):
+        own = points_m[nearest == index]
+        refitted.append(fit_superquadric(own, options) if len(own) >= 10 else link)
+    full = [_with_posterior(link, points_m, options) for link in refitted]
+    return full
+
+
+def _distance_to(link: EMSResult, points_m: FloatArray) -> FloatArray:
+    from vistac.plugins.shape.superquadric import distance_to_surface_m
+
+    return distance_to_surface_m(link.superquadric, points_m)
+
+
+def _with_posterior(link: EMSResult, points_m: FloatArray, options: EMSOptions) -> EMSResult:
+    problem = _make_problem(points_m, options)
+    weights = problem.posterior(_distance_to(link, points_m), link.noise_m**2)
+    return EMSResult(link.superquadric, link.params, link.std, weights, link.noise_m, link.nll)

@@ -1,0 +1,71 @@
+"""Regression matrix: every shipped skill (short mode) and every plugin combination in
+tests/regression/*.yaml runs with a fixed seed, and its summary matches the stored
+expectations within tolerances. A new combination gets its test by adding a YAML; record its
+expectations with ``VISTAC_UPDATE_REGRESSION=1 pytest tests/test_regression.py``."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from conftest import ROOT, SKILLS
+
+from vistac.pluginmanager import Plugins
+from vistac.scheduler import Scheduler
+from vistac.skill import load_skill
+
+HERE = ROOT / "tests/regression"
+EXPECTATIONS = HERE / "expectations.json"
+SHORT_MODE: dict[str, list[str]] = yaml.safe_load((HERE / "short_mode.yaml").read_text())
+CASES = sorted(SKILLS.glob("*.yaml")) + sorted(HERE.glob("*.yaml"))
+CASES = [c for c in CASES if c.name != "short_mode.yaml"]
+DISPLACEMENT_TOL_M = 0.005
+FORCE_REL_TOL = 0.2
+
+
+def _key(path: Path) -> str:
+    return str(path.relative_to(ROOT))
+
+
+def _digest(summary: dict[str, Any]) -> dict[str, Any]:
+    """What a regression compares: outcome, views and each episode's gist."""
+    return {
+        "status": summary["status"],
+        "views": summary["views"],
+        "episodes": [
+            {"kind": e["action"]["kind"], "steps": e["steps"],
+             "displacement_m": e.get("object_displacement_m"),
+             "peak_force_n": e.get("peak_tactile_force_n")}
+            for e in summary["episodes"]
+        ],
+    }
+
+
+def _compare(got: dict[str, Any], want: dict[str, Any]) -> None:
+    assert (got["status"], got["views"]) == (want["status"], want["views"])
+    assert len(got["episodes"]) == len(want["episodes"])
+    for g, w in zip(got["episodes"], want["episodes"], strict=True):
+        assert (g["kind"], g["steps"]) == (w["kind"], w["steps"])
+        if w["displacement_m"] is not None:
+            assert g["displacement_m"] == pytest.approx(w["displacement_m"], abs=DISPLACEMENT_TOL_M)
+        if w["peak_force_n"] is not None:
+            assert g["peak_force_n"] == pytest.approx(w["peak_force_n"], rel=FORCE_REL_TOL, abs=0.3)
+
+
+@pytest.mark.parametrize("path", CASES, ids=_key)
+def test_regression(path: Path, plugins: Plugins, tmp_path: Path) -> None:
+    skill = load_skill(path, plugins.registry, SHORT_MODE.get(path.stem, []))
+    result = Scheduler(skill, plugins, tmp_path / "out").run()
+    assert result.status == "success", result.error
+    got = _digest(result.summary)
+    expectations = json.loads(EXPECTATIONS.read_text()) if EXPECTATIONS.exists() else {}
+    if os.environ.get("VISTAC_UPDATE_REGRESSION") == "1":
+        expectations[_key(path)] = got
+        EXPECTATIONS.write_text(json.dumps(expectations, indent=2, sort_keys=True) + "\n")
+        return
+    assert _key(path) in expectations, f"no expectations for {_key(path)}; record them (see module doc)"
+    _compare(got, expectations[_key(path)])
