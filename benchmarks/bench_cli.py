@@ -15,5 +15,15 @@ def _run(*args: str) -> None:
 def run(repeats: int) -> list[Row]:
     plugins_s = median_time_s(lambda: _run("-m", "vistac.cli", "plugins"), repeats)
     bare_s = median_time_s(lambda: _run("-c", "pass"), repeats)
-    return [Row("`vistac plugins` wall time", plugins_s, "s", "< 1 s", plugins_s < 1.0,
-                "bare `python -c pass`", bare_s, "imports no torch/open3d/mujoco/ur_rtde")]
+    return [
+        Row(
+            "`vistac plugins` wall time",
+            plugins_s,
+            "s",
+            "< 1 s",
+            plugins_s < 1.0,
+            "bare `python -c pass`",
+            bare_s,
+            "imports no torch/open3d/mujoco/ur_rtde",
+        )
+    ]

@@ -15,7 +15,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import Row  # noqa: E402
+from common import Row
 
 MODULES = ("bench_sim", "bench_cli")
 
@@ -44,8 +44,10 @@ def render(rows: list[Row], repeats: int) -> str:
     ]
     for row in rows:
         peer = f"{row.peer}: {row.peer_value:.4g} {row.unit}" if row.peer_value is not None else "-"
-        lines.append(f"| {row.name} | {row.value:.4g} {row.unit} | {row.target} | "
-                     f"{'yes' if row.passed else '**no**'} | {peer} | {row.note} |")
+        lines.append(
+            f"| {row.name} | {row.value:.4g} {row.unit} | {row.target} | "
+            f"{'yes' if row.passed else '**no**'} | {peer} | {row.note} |"
+        )
     return "\n".join(lines) + "\n"
 
 

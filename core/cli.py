@@ -21,10 +21,24 @@ from vistac.pluginmanager import Plugins, load_plugins
 log = logging.getLogger("vistac")
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at the time of the record (not at setup)."""
+
+    @property
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value: Any) -> None:
+        del value
+
+
 def _setup_logging(quiet: bool, verbose: bool) -> None:
     level = logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("%(message)s" if not verbose else "%(name)s: %(message)s"))
+    handler = _StderrHandler()
+    handler.setFormatter(
+        logging.Formatter("%(message)s" if not verbose else "%(name)s: %(message)s")
+    )
     root = logging.getLogger("vistac")
     root.handlers[:] = [handler]
     root.setLevel(level)
@@ -55,22 +69,30 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
     """A short human-readable account of a run."""
-    lines = [f"skill {summary['skill']!r}: {summary['status']} in {summary['wall_time_s']:.1f} s"
-             + (f" ({summary['sim_time_s']:.1f} s simulated)" if summary.get("sim_time_s") else "")]
+    lines = [
+        f"skill {summary['skill']!r}: {summary['status']} in {summary['wall_time_s']:.1f} s"
+        + (f" ({summary['sim_time_s']:.1f} s simulated)" if summary.get("sim_time_s") else "")
+    ]
     if summary.get("views"):
         lines.append(f"  looked from {summary['views']} views")
     for episode in summary.get("episodes", []):
         action = episode["action"]
         x, y = action["point_m"]
-        text = (f"  episode {episode['index']}: {action['kind']} at ({x:.3f}, {y:.3f}) m, "
-                f"direction {action['pd_rad'] * 57.2958:.0f} deg, {episode['steps']} steps")
+        text = (
+            f"  episode {episode['index']}: {action['kind']} at ({x:.3f}, {y:.3f}) m, "
+            f"direction {action['pd_rad'] * 57.2958:.0f} deg, {episode['steps']} steps"
+        )
         if "object_displacement_m" in episode:
             text += f", object moved {max(episode['object_displacement_m']) * 100:.1f} cm"
         if "peak_tactile_force_n" in episode:
             text += f", peak force {episode['peak_tactile_force_n']:.2f} N"
         lines.append(text)
     if summary.get("belief"):
-        lines.append(_belief_table(summary["belief"], (summary.get("ground_truth") or {}).get("parameters", {})))
+        lines.append(
+            _belief_table(
+                summary["belief"], (summary.get("ground_truth") or {}).get("parameters", {})
+            )
+        )
     lines.append(f"  data: {out_dir}/ (run.json, summary.json, episodes/, views/)")
     return "\n".join(lines)
 
@@ -105,11 +127,16 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     plugins = _plugins(args)
     entries = plugins.registry.entries()
     if args.json:
-        print(json.dumps({
-            "plugins": plugins.loaded,
-            "failures": [{"name": f.name, "error": f.error} for f in plugins.failures],
-            "components": [e.__dict__ for e in entries],
-        }, indent=2))
+        print(
+            json.dumps(
+                {
+                    "plugins": plugins.loaded,
+                    "failures": [{"name": f.name, "error": f.error} for f in plugins.failures],
+                    "components": [e.__dict__ for e in entries],
+                },
+                indent=2,
+            )
+        )
         return 0
     print("plugins: " + ", ".join(plugins.loaded))
     for failure in plugins.failures:
@@ -132,7 +159,6 @@ def cmd_schema(args: argparse.Namespace) -> int:
 
 def cmd_tree(args: argparse.Namespace) -> int:
     import py_trees
-
     from vistac.skill import load_skill
     from vistac.tree import build_tree
 
@@ -146,22 +172,37 @@ def cmd_objects_generate(args: argparse.Namespace) -> int:
 
     split = write_configurations(args.seed, args.out)
     counts = ", ".join(f"{len(names)} {part}" for part, names in split.items())
-    print(f"wrote {sum(map(len, split.values()))} object configurations ({counts}) "
-          f"and split.json to {args.out}")
+    print(
+        f"wrote {sum(map(len, split.values()))} object configurations ({counts}) "
+        f"and split.json to {args.out}"
+    )
     return 0
 
 
 def _add_skill_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a key, e.g. components.arm.with.max_speed_mps=0.01")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a key, e.g. components.arm.with.max_speed_mps=0.01",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="vistac", description=__doc__.splitlines()[0] if __doc__ else "")
+    parser = argparse.ArgumentParser(
+        prog="vistac", description=__doc__.splitlines()[0] if __doc__ else ""
+    )
     parser.add_argument("--version", action="version", version=f"vistac {__version__}")
-    parser.add_argument("-p", "--plugin", action="append", default=[], metavar="NAME",
-                        help="load this plugin (entry-point name or module), also when "
-                             "VISTAC_DISABLE_PLUGIN_AUTOLOAD=1")
+    parser.add_argument(
+        "-p",
+        "--plugin",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="load this plugin (entry-point name or module), also when "
+        "VISTAC_DISABLE_PLUGIN_AUTOLOAD=1",
+    )
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)

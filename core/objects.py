@@ -227,8 +227,14 @@ class ObjectSpec(_Model):
         (table friction), ``com_x_i``/``com_y_i`` (m, link frame) per link, ``f_j_0`` (N m)."""
         values: dict[str, float] = {}
         for i, link in enumerate(self.links):
-            values.update({f"m_{i}": link.mass_kg, f"f_{i}": link.friction,
-                           f"com_x_{i}": link.com_m[0], f"com_y_{i}": link.com_m[1]})
+            values.update(
+                {
+                    f"m_{i}": link.mass_kg,
+                    f"f_{i}": link.friction,
+                    f"com_x_{i}": link.com_m[0],
+                    f"com_y_{i}": link.com_m[1],
+                }
+            )
         if self.joint is not None:
             values["f_j_0"] = self.joint.friction_nm
         return values

@@ -17,7 +17,6 @@ from importlib.metadata import EntryPoint, entry_points
 from types import ModuleType
 
 import pluggy
-
 from vistac import hookspecs
 from vistac.registry import Registry
 

@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
-
 from vistac.types import (
     RGBD,
     Action,
@@ -262,7 +261,10 @@ class TouchEstimator(Protocol):
     """Belief over (class, pose) or shape from touches."""
 
     def update(
-        self, start_m: FloatArray, target_m: FloatArray, contact: tuple[FloatArray, FloatArray] | None
+        self,
+        start_m: FloatArray,
+        target_m: FloatArray,
+        contact: tuple[FloatArray, FloatArray] | None,
     ) -> dict[str, Any]: ...
 
 

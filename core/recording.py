@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from vistac.errors import ConfigError, ConfigIssue
 from vistac.protocols import Episode
 from vistac.types import RGBD, PointCloud, action_to_dict
@@ -50,9 +49,14 @@ def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
     """Create ``out_dir``; refuse to mix with an earlier run unless ``overwrite``."""
     if (out_dir / "run.json").exists():
         if not overwrite:
-            raise ConfigError([ConfigIssue(
-                "--out", f"{out_dir} already holds a run; choose another folder or pass --overwrite"
-            )])
+            raise ConfigError(
+                [
+                    ConfigIssue(
+                        "--out",
+                        f"{out_dir} already holds a run; choose another folder or pass --overwrite",
+                    )
+                ]
+            )
         for name in RUN_FILES:
             (out_dir / name).unlink(missing_ok=True)
         for name in RUN_DIRS:
@@ -129,9 +133,13 @@ class RunRecorder:
             "outcome": episode.outcome,
             "steps": len(episode.steps),
             "arrays": {name: list(a.shape) for name, a in arrays.items()},
-            "units": {"time_s": "s", "tactile_force_n": "N (world x, y per pad)",
-                      "arm_pose": "x, y, z m, yaw rad", "depth_m": "m (NaN: no return)",
-                      "object_pose": "x, y m, theta rad per link (ground truth)"},
+            "units": {
+                "time_s": "s",
+                "tactile_force_n": "N (world x, y per pad)",
+                "arm_pose": "x, y, z m, yaw rad",
+                "depth_m": "m (NaN: no return)",
+                "object_pose": "x, y m, theta rad per link (ground truth)",
+            },
             "ground_truth": ground_truth,
         }
         write_json(tmp / "meta.json", meta)
@@ -153,6 +161,8 @@ class RunRecorder:
             line["peak_tactile_force_n"] = float(forces.max())
         if "object_pose" in arrays and len(arrays["object_pose"]) > 1:
             poses = arrays["object_pose"]
-            line["object_displacement_m"] = np.linalg.norm(poses[-1, :, :2] - poses[0, :, :2], axis=-1).tolist()
+            line["object_displacement_m"] = np.linalg.norm(
+                poses[-1, :, :2] - poses[0, :, :2], axis=-1
+            ).tolist()
             line["object_rotation_rad"] = (poses[-1, :, 2] - poses[0, :, 2]).tolist()
         return line

@@ -8,7 +8,6 @@ import logging
 from dataclasses import dataclass
 
 from pydantic import BaseModel
-
 from vistac.errors import PluginError
 from vistac.protocols import KINDS
 
@@ -95,7 +94,9 @@ class Registry:
             raise PluginError(f"{entry.target} has no pydantic 'Config' class")
         declared = getattr(cls, "kind", entry.kind)
         if declared != entry.kind:
-            raise PluginError(f"{entry.target} declares kind {declared!r}, registered as {entry.kind!r}")
+            raise PluginError(
+                f"{entry.target} declares kind {declared!r}, registered as {entry.kind!r}"
+            )
         self._loaded[name] = cls
         return cls
 

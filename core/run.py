@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from vistac.errors import SafetyError, VistacError
 from vistac.pluginmanager import Plugins
 from vistac.recording import RunRecorder
@@ -132,7 +131,9 @@ class RunContext:
 
     def build_all(self) -> None:
         """Build every component (worlds first) and choose the clock."""
-        ordered = sorted(self.skill.components, key=lambda r: self.skill.components[r].kind != "world")
+        ordered = sorted(
+            self.skill.components, key=lambda r: self.skill.components[r].kind != "world"
+        )
         for role in ordered:
             self.component(role)
         world = self.find("world")
@@ -175,4 +176,6 @@ class RunContext:
         """Raise SafetyError when sensor data is older than ``max_age_s``."""
         age_s = self.time_s - timestamp_s
         if age_s > max_age_s:
-            raise SafetyError(f"stale {what} data: {age_s * 1e3:.0f} ms old (limit {max_age_s * 1e3:.0f} ms)")
+            raise SafetyError(
+                f"stale {what} data: {age_s * 1e3:.0f} ms old (limit {max_age_s * 1e3:.0f} ms)"
+            )

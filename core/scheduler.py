@@ -14,7 +14,6 @@ from typing import Any
 
 import py_trees
 from py_trees.common import Status
-
 from vistac.errors import SafetyError, VistacError
 from vistac.pluginmanager import Plugins
 from vistac.recording import RunRecorder, prepare_out_dir
@@ -40,7 +39,17 @@ class RunResult:
 
 
 def _versions() -> dict[str, str]:
-    names = ("vistac", "numpy", "scipy", "mujoco", "py_trees", "pluggy", "pydantic", "torch", "open3d")
+    names = (
+        "vistac",
+        "numpy",
+        "scipy",
+        "mujoco",
+        "py_trees",
+        "pluggy",
+        "pydantic",
+        "torch",
+        "open3d",
+    )
     found = {"python": platform.python_version()}
     for name in names:
         try:
@@ -68,8 +77,14 @@ def _run_info(skill: Skill, plugins: Plugins, seed: int) -> dict[str, Any]:
 class Scheduler:
     """Ticks one skill's tree under its clock."""
 
-    def __init__(self, skill: Skill, plugins: Plugins, out_dir: Path, seed: int | None = None,
-                 overwrite: bool = False) -> None:
+    def __init__(
+        self,
+        skill: Skill,
+        plugins: Plugins,
+        out_dir: Path,
+        seed: int | None = None,
+        overwrite: bool = False,
+    ) -> None:
         prepare_out_dir(out_dir, overwrite)
         self.skill = skill
         self.seed = skill.seed if seed is None else seed
@@ -89,7 +104,9 @@ class Scheduler:
         except KeyboardInterrupt:
             result.status, result.error = "interrupted", "interrupted by Ctrl-C"
         except Exception as exc:  # every failure path ends with the arm stopped
-            result.error = str(exc) if isinstance(exc, VistacError) else f"{type(exc).__name__}: {exc}"
+            result.error = (
+                str(exc) if isinstance(exc, VistacError) else f"{type(exc).__name__}: {exc}"
+            )
             log.debug("run failed", exc_info=True)
         finally:
             stop_errors = self.ctx.stop_motion()
@@ -114,7 +131,9 @@ class Scheduler:
                 return "success" if root.status == Status.SUCCESS else "failure"
             if self.ctx.time_s - start_s > self.skill.max_duration_s:
                 tree.interrupt()
-                raise SafetyError(f"skill exceeded max_duration_s = {self.skill.max_duration_s:g} s")
+                raise SafetyError(
+                    f"skill exceeded max_duration_s = {self.skill.max_duration_s:g} s"
+                )
             self.ctx.clock.advance(self.ctx.period_s)
 
     def _finish(self, result: RunResult, wall_s: float) -> dict[str, Any]:
@@ -125,8 +144,9 @@ class Scheduler:
             log.error("an observer failed at skill end: %s", exc)
         self.ctx.close_all()
         self.recorder.write_summary(summary)
-        self.run_info.update(status=result.status, error=result.error, wall_time_s=wall_s,
-                             ticks=self.ticks)
+        self.run_info.update(
+            status=result.status, error=result.error, wall_time_s=wall_s, ticks=self.ticks
+        )
         self.recorder.write_run(self.run_info)
         return summary
 
@@ -150,6 +170,7 @@ class Scheduler:
         if belief and truth and "parameters" in truth:
             summary["errors"] = {
                 name: abs(entry["mean"] - truth["parameters"][name])
-                for name, entry in belief.items() if name in truth["parameters"]
+                for name, entry in belief.items()
+                if name in truth["parameters"]
             }
         return summary

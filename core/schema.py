@@ -6,7 +6,6 @@ import logging
 from typing import Any
 
 from pydantic.json_schema import models_json_schema
-
 from vistac.errors import PluginError
 from vistac.registry import Registry
 from vistac.skill import SkillFile
@@ -23,7 +22,8 @@ def skill_schema(registry: Registry) -> dict[str, Any]:
             loaded[entry.name] = registry.load(entry.name)
         except PluginError as exc:
             log.warning("schema: skipping %s: %s", entry.name, exc)
-    keys = {name: (cls.Config, "validation") for name, cls in loaded.items()}  # type: ignore[attr-defined]
+    configs: dict[str, Any] = {name: cls.Config for name, cls in loaded.items()}  # type: ignore[attr-defined]
+    keys: dict[str, Any] = {name: (config, "validation") for name, config in configs.items()}
     refs, top = models_json_schema(list(keys.values()), ref_template="#/$defs/{model}")
     schema = SkillFile.model_json_schema(ref_template="#/$defs/{model}")
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
@@ -39,16 +39,18 @@ def skill_schema(registry: Registry) -> dict[str, Any]:
             "additionalProperties": False,
             "properties": {"plugin": {"enum": sorted(components)}, "with": {"type": "object"}},
             "allOf": [
-                {"if": {"properties": {"plugin": {"const": name}}},
-                 "then": {"properties": {"with": refs[keys[name]]}}}
+                {
+                    "if": {"properties": {"plugin": {"const": name}}},
+                    "then": {"properties": {"with": refs[keys[name]]}},
+                }
                 for name in sorted(components)
             ],
         },
     }
     schema["properties"]["tree"] = {
         "description": "a node: NAME | {NAME: args} | [nodes] | {sequence: [...]} | "
-                       "{selector: [...]} | {repeat: {do, until, max, on_max}}; nodes: "
-                       + ", ".join(sorted(nodes)),
+        "{selector: [...]} | {repeat: {do, until, max, on_max}}; nodes: "
+        + ", ".join(sorted(nodes)),
     }
     schema["x-tree-nodes"] = {name: refs[keys[name]] for name in sorted(nodes)}
     return schema

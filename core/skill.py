@@ -14,7 +14,6 @@ from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-
 from vistac.component import ComponentSpec
 from vistac.errors import ConfigError, ConfigIssue, PluginError
 from vistac.registry import Registry
@@ -31,7 +30,9 @@ class SkillFile(BaseModel):
     description: str = ""
     seed: int = 0
     rate_hz: float = Field(15.0, gt=0, description="control and observation rate")
-    max_duration_s: float = Field(3600.0, gt=0, description="abort the run after this much (sim or wall) time")
+    max_duration_s: float = Field(
+        3600.0, gt=0, description="abort the run after this much (sim or wall) time"
+    )
     components: dict[str, ComponentSpec] = Field(default_factory=dict)
     tree: Any
 
@@ -72,14 +73,18 @@ def read_yaml(path: Path) -> Any:
     except FileNotFoundError:
         raise ConfigError([ConfigIssue("", "file not found")], str(path)) from None
     except OSError as exc:
-        raise ConfigError([ConfigIssue("", f"cannot read file: {exc.strerror}")], str(path)) from None
+        raise ConfigError(
+            [ConfigIssue("", f"cannot read file: {exc.strerror}")], str(path)
+        ) from None
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError([ConfigIssue("", f"malformed YAML: {where}{problem}")], str(path)) from None
+        raise ConfigError(
+            [ConfigIssue("", f"malformed YAML: {where}{problem}")], str(path)
+        ) from None
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -112,7 +117,9 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
                 if not last and node.get(key) is None:
                     node[key] = {}
             else:
-                raise ConfigError([ConfigIssue("--set", f"{where}: cannot set inside a {type(node).__name__}")])
+                raise ConfigError(
+                    [ConfigIssue("--set", f"{where}: cannot set inside a {type(node).__name__}")]
+                )
             if last:
                 node[index] = value
             else:
@@ -213,6 +220,12 @@ def validate_skill(data: dict[str, Any], path: Path, registry: Registry) -> Skil
         raise ConfigError(issues, str(path))
     assert tree is not None
     return Skill(
-        path.resolve(), skill_file.name, skill_file.seed, skill_file.rate_hz,
-        skill_file.max_duration_s, data, components, tree,
+        path.resolve(),
+        skill_file.name,
+        skill_file.seed,
+        skill_file.rate_hz,
+        skill_file.max_duration_s,
+        data,
+        components,
+        tree,
     )

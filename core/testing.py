@@ -22,7 +22,6 @@ from typing import Any
 
 import numpy as np
 from pydantic import BaseModel
-
 from vistac.pluginmanager import Plugins, load_plugins
 from vistac.protocols import KINDS, PROTOCOLS, Scene
 from vistac.recording import RunRecorder
@@ -43,13 +42,22 @@ Advance = Callable[[float], None]
 
 
 def build_components(
-    components: dict[str, dict[str, Any]], out_dir: Path, seed: int = 0,
-    skill_dir: Path | None = None, plugins: Plugins | None = None,
+    components: dict[str, dict[str, Any]],
+    out_dir: Path,
+    seed: int = 0,
+    skill_dir: Path | None = None,
+    plugins: Plugins | None = None,
 ) -> RunContext:
     """Validate ``{role: {plugin, with}}`` like a skill and return a context that builds
     them (``ctx.component(role)``); the world, if any, is built and reset."""
     plugins = plugins or load_plugins()
-    data = {"version": 1, "name": "conformance", "seed": seed, "components": components, "tree": "stop"}
+    data = {
+        "version": 1,
+        "name": "conformance",
+        "seed": seed,
+        "components": components,
+        "tree": "stop",
+    }
     skill = validate_skill(data, (skill_dir or Path.cwd()) / "conformance.yaml", plugins.registry)
     out_dir.mkdir(parents=True, exist_ok=True)
     ctx = RunContext(skill, plugins, RunRecorder(out_dir), seed)
@@ -66,8 +74,12 @@ def check_component_class(cls: type) -> None:
     kind = getattr(cls, "kind", None)
     assert kind in KINDS, f"{cls.__name__}.kind = {kind!r} is not one of {KINDS}"
     config = getattr(cls, "Config", None)
-    assert isinstance(config, type) and issubclass(config, BaseModel), f"{cls.__name__} needs a pydantic Config"
-    assert config.model_config.get("extra") == "forbid", f"{cls.__name__}.Config must forbid unknown keys"
+    assert isinstance(config, type) and issubclass(config, BaseModel), (
+        f"{cls.__name__} needs a pydantic Config"
+    )
+    assert config.model_config.get("extra") == "forbid", (
+        f"{cls.__name__}.Config must forbid unknown keys"
+    )
     config()  # every option has a default or the class documents required ones
 
 
@@ -76,7 +88,9 @@ def check_component(instance: Any, kind: str | None = None, advance: Advance | N
     kind = kind or type(instance).kind
     protocol = PROTOCOLS.get(kind)
     if protocol is not None:
-        assert isinstance(instance, protocol), f"{type(instance).__name__} does not implement {protocol.__name__}"
+        assert isinstance(instance, protocol), (
+            f"{type(instance).__name__} does not implement {protocol.__name__}"
+        )
     checker = _CHECKS.get(kind)
     if checker is not None:
         checker(instance, advance or _sleep)
@@ -87,7 +101,9 @@ def _check_world(world: Any, advance: Advance) -> None:
     start_s = world.time_s
     world.step(0.1)
     if world.simulated:
-        assert abs(world.time_s - start_s - 0.1) < 1e-6, "a simulated world's step(dt) advances time_s by dt"
+        assert abs(world.time_s - start_s - 0.1) < 1e-6, (
+            "a simulated world's step(dt) advances time_s by dt"
+        )
     truth = world.ground_truth()
     assert truth is None or isinstance(truth, dict), "ground_truth() returns a dict or None"
 
@@ -99,7 +115,9 @@ def _check_arm(arm: Any, advance: Advance) -> None:
     arm.command_velocity(np.array([10 * arm.max_speed_mps, 0.0, 0.0, 0.0]))
     advance(0.2)
     speed = float(np.linalg.norm(arm.state().twist[:3]))
-    assert speed <= arm.max_speed_mps * 1.05, f"speed {speed:.4f} m/s above the cap {arm.max_speed_mps} m/s"
+    assert speed <= arm.max_speed_mps * 1.05, (
+        f"speed {speed:.4f} m/s above the cap {arm.max_speed_mps} m/s"
+    )
     arm.stop()
     advance(0.2)
     stopped = float(np.linalg.norm(arm.state().twist[:3]))
@@ -129,7 +147,9 @@ def _check_camera(camera: Any, advance: Advance) -> None:
     if camera.movable:
         camera.move_to(Viewpoint(np.array([0.3, 0.2, 0.5]), np.array([0.0, 0.45, 0.0])))
         moved = camera.capture()
-        assert not np.allclose(moved.world_from_camera, frame.world_from_camera), "move_to moves the camera"
+        assert not np.allclose(moved.world_from_camera, frame.world_from_camera), (
+            "move_to moves the camera"
+        )
 
 
 def _check_tactile(tactile: Any, advance: Advance) -> None:
@@ -169,7 +189,9 @@ def _check_action_selector(selector: Any, advance: Advance) -> None:
     scene = _reference_scene()
     chosen = selector.select(candidates, scene, np.random.default_rng(3))
     assert any(chosen is c for c in candidates), "select() returns one of the candidates"
-    assert selector.select(candidates, scene, np.random.default_rng(3)) is chosen, "same seed, same choice"
+    assert selector.select(candidates, scene, np.random.default_rng(3)) is chosen, (
+        "same seed, same choice"
+    )
 
 
 _CHECKS: dict[str, Callable[[Any, Advance], None]] = {

@@ -20,7 +20,6 @@ from typing import TYPE_CHECKING, Any, ClassVar, Literal
 import py_trees
 from py_trees.common import Access, Status
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-
 from vistac.component import ComponentConfig
 from vistac.errors import ConfigIssue, PluginError
 from vistac.registry import Registry, suggest
@@ -162,7 +161,9 @@ def _parse_repeat(
     try:
         args = RepeatArgs.model_validate(value)
     except ValidationError as exc:
-        return None, [ConfigIssue(f"{path}.{'.'.join(map(str, e['loc']))}", e["msg"]) for e in exc.errors()]
+        return None, [
+            ConfigIssue(f"{path}.{'.'.join(map(str, e['loc']))}", e["msg"]) for e in exc.errors()
+        ]
     body = args.do if isinstance(args.do, list) else [args.do]
     node, issues = _parse_children("repeat", body, registry, context, f"{path}.do")
     if node is None:
@@ -192,9 +193,10 @@ def _parse_behaviour(
         config = cls.Config.model_validate(value or {}, context=context)
     except ValidationError as exc:
         return None, [
-            ConfigIssue(f"{node_path}.{'.'.join(map(str, e['loc']))}", e["msg"]) for e in exc.errors()
+            ConfigIssue(f"{node_path}.{'.'.join(map(str, e['loc']))}", e["msg"])
+            for e in exc.errors()
         ]
-    return NodeSpec(name, node_path, cls=cls, config=config), []  # type: ignore[arg-type]
+    return NodeSpec(name, node_path, cls=cls, config=config), []
 
 
 def check_tree(tree: NodeSpec, kinds: dict[str, str]) -> list[ConfigIssue]:
@@ -223,12 +225,17 @@ def _role_issues(node: NodeSpec, kinds: dict[str, str]) -> list[ConfigIssue]:
             if field_name not in node.cls.optional_roles:
                 hint = suggest(role, list(kinds))
                 issues.append(
-                    ConfigIssue(node.path, f"needs a {kind} component as role {role!r}; "
-                                f"add it under components:{hint}")
+                    ConfigIssue(
+                        node.path,
+                        f"needs a {kind} component as role {role!r}; "
+                        f"add it under components:{hint}",
+                    )
                 )
         elif kinds[role] != kind:
             issues.append(
-                ConfigIssue(node.path, f"role {role!r} is a {kinds[role]}, this node needs a {kind}")
+                ConfigIssue(
+                    node.path, f"role {role!r} is a {kinds[role]}, this node needs a {kind}"
+                )
             )
     return issues
 
@@ -238,8 +245,12 @@ class RepeatUntil(py_trees.composites.Composite):
     ``max_iterations`` bodies have run. A failing body fails the repeat."""
 
     def __init__(
-        self, name: str, body: py_trees.behaviour.Behaviour,
-        until: py_trees.behaviour.Behaviour | None, max_iterations: int, on_max: str,
+        self,
+        name: str,
+        body: py_trees.behaviour.Behaviour,
+        until: py_trees.behaviour.Behaviour | None,
+        max_iterations: int,
+        on_max: str,
     ) -> None:
         super().__init__(name, [body] + ([until] if until is not None else []))
         self.body, self.until = body, until
@@ -251,8 +262,7 @@ class RepeatUntil(py_trees.composites.Composite):
             self.iterations = 0
             self.initialise()
         self.current_child = self.body
-        for node in self.body.tick():
-            yield node
+        yield from self.body.tick()
         if self.body.status != Status.SUCCESS:
             self._finish(self.body.status)
             yield self
@@ -291,6 +301,8 @@ def build_tree(node: NodeSpec, run: RunContext | None) -> py_trees.behaviour.Beh
     if node.name == "repeat":
         body = py_trees.composites.Sequence("do", memory=True, children=children)
         until = build_tree(node.until, run) if node.until is not None else None
-        label = f"repeat (max {node.max_iterations}" + (f", until {node.until.name})" if node.until else ")")
+        label = f"repeat (max {node.max_iterations}" + (
+            f", until {node.until.name})" if node.until else ")"
+        )
         return RepeatUntil(label, body, until, node.max_iterations, node.on_max)
     return py_trees.composites.Sequence("sequence", memory=True, children=children)

@@ -13,7 +13,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-
 from vistac.errors import DataError
 
 FloatArray = NDArray[np.float64]
@@ -348,7 +347,8 @@ class GaussianBelief:
         try:
             return self.names.index(name)
         except ValueError:
-            raise KeyError(f"belief has no entry {name!r}; entries: {', '.join(self.names)}")
+            entries = ", ".join(self.names)
+            raise KeyError(f"belief has no entry {name!r}; entries: {entries}") from None
 
     @property
     def std(self) -> FloatArray:

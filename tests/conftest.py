@@ -13,8 +13,8 @@ import pytest
 
 os.environ["VISTAC_DISABLE_PLUGIN_AUTOLOAD"] = "1"
 
-from vistac.cli import main  # noqa: E402
-from vistac.pluginmanager import Plugins, load_plugins  # noqa: E402
+from vistac.cli import main
+from vistac.pluginmanager import Plugins, load_plugins
 
 ROOT = Path(__file__).resolve().parents[1]
 SKILLS = ROOT / "skills"
@@ -37,12 +37,19 @@ def cli(capsys: pytest.CaptureFixture[str]) -> Callable[..., tuple[int, str, str
     return run
 
 
-def run_vistac(*args: str, env: dict[str, str] | None = None,
-               timeout_s: float = 300) -> subprocess.CompletedProcess[str]:
+def run_vistac(
+    *args: str, env: dict[str, str] | None = None, timeout_s: float = 300
+) -> subprocess.CompletedProcess[str]:
     """Run the ``vistac`` CLI in a fresh interpreter."""
     full_env = {**os.environ, **(env or {})}
-    return subprocess.run([sys.executable, "-m", "vistac.cli", *args], capture_output=True,
-                          text=True, env=full_env, timeout=timeout_s, cwd=ROOT)
+    return subprocess.run(
+        [sys.executable, "-m", "vistac.cli", *args],
+        capture_output=True,
+        text=True,
+        env=full_env,
+        timeout=timeout_s,
+        cwd=ROOT,
+    )
 
 
 def write(path: Path, text: str) -> Path:

@@ -7,7 +7,6 @@ from typing import Any, ClassVar
 
 import numpy as np
 from py_trees.common import Status
-
 from vistac import hookimpl
 from vistac.component import Component, ComponentConfig
 from vistac.errors import DataError
@@ -134,9 +133,14 @@ class FakeInteraction(SkillBehaviour):
             self.write("belief", self.run.component("filter").initialise(None))
         rng = self.run.rng(f"fake/{self.run.episode_count}")
         values = self.config.value + rng.normal(0, self.config.noise_std, 15)
-        steps = [StepObservation(i / 15, TactileReading(np.zeros((2, 2)), i / 15),
-                                 ArmState(np.array([v, 0, 0, 0]), np.zeros(4), i / 15))
-                 for i, v in enumerate(values)]
+        steps = [
+            StepObservation(
+                i / 15,
+                TactileReading(np.zeros((2, 2)), i / 15),
+                ArmState(np.array([v, 0, 0, 0]), np.zeros(4), i / 15),
+            )
+            for i, v in enumerate(values)
+        ]
         self.write("episode", Episode(self.run.episode_count, Push(np.zeros(2), 0.0, 0.02), steps))
         self.run.episode_count += 1
         return Status.SUCCESS
@@ -179,7 +183,13 @@ def vistac_register(registry: Any) -> None:
     module = __name__
     registry.add("arm", "test.arm", f"{module}:RecordingArm")
     registry.add("filter", "test.kalman", f"{module}:ScalarKalmanFilter")
-    for name, cls in {"count": "Count", "count_at_least": "CountAtLeast", "boom": "Boom",
-                      "fail": "Fail", "forever": "Forever", "needs_widget": "NeedsWidget",
-                      "fake_interaction": "FakeInteraction"}.items():
+    for name, cls in {
+        "count": "Count",
+        "count_at_least": "CountAtLeast",
+        "boom": "Boom",
+        "fail": "Fail",
+        "forever": "Forever",
+        "needs_widget": "NeedsWidget",
+        "fake_interaction": "FakeInteraction",
+    }.items():
         registry.add("behaviour", name, f"{module}:{cls}")

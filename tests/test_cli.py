@@ -17,8 +17,11 @@ def test_schema_checks_each_plugins_with_block(cli: Cli) -> None:
     schema = json.loads(out)
     component = schema["properties"]["components"]["additionalProperties"]
     assert "sim.depth_camera" in component["properties"]["plugin"]["enum"]
-    camera = next(rule for rule in component["allOf"]
-                  if rule["if"]["properties"]["plugin"]["const"] == "sim.depth_camera")
+    camera = next(
+        rule
+        for rule in component["allOf"]
+        if rule["if"]["properties"]["plugin"]["const"] == "sim.depth_camera"
+    )
     ref = camera["then"]["properties"]["with"]["$ref"].split("/")[-1]
     assert "width" in schema["$defs"][ref]["properties"]
     assert "look" in schema["x-tree-nodes"]

@@ -13,10 +13,20 @@ from conftest import SKILLS, run_vistac
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("collect") / "out"
-    result = run_vistac("run", str(SKILLS / "collect_pushes.yaml"), "--out", str(out),
-                        "--set", "tree.sequence.0.repeat.max=3", "--seed", "1")
+    result = run_vistac(
+        "run",
+        str(SKILLS / "collect_pushes.yaml"),
+        "--out",
+        str(out),
+        "--set",
+        "tree.sequence.0.repeat.max=3",
+        "--seed",
+        "1",
+    )
     assert result.returncode == 0, result.stderr
-    assert "looked from" in result.stdout and str(out) in result.stdout  # what it did, where data is
+    assert (
+        "looked from" in result.stdout and str(out) in result.stdout
+    )  # what it did, where data is
     return out
 
 
@@ -47,7 +57,9 @@ def test_episodes_hold_the_stream_at_15_hz(run_dir: Path) -> None:
         assert meta["action"]["kind"] in ("push", "pull")
         assert meta["ground_truth"]["parameters"]["f_0"] == pytest.approx(0.3)
         # The object moved during the interaction and the pads felt it.
-        assert np.linalg.norm(data["object_pose"][-1, 0, :2] - data["object_pose"][0, 0, :2]) > 0.005
+        assert (
+            np.linalg.norm(data["object_pose"][-1, 0, :2] - data["object_pose"][0, 0, :2]) > 0.005
+        )
         assert np.abs(data["tactile_force_n"]).max() > 0.5
 
 

@@ -6,10 +6,9 @@ from pathlib import Path
 
 import pytest
 from conftest import SKILLS
-
 from vistac.pluginmanager import Plugins
-from vistac.types import ArmState
 from vistac.testing import build_components, check_component, check_component_class
+from vistac.types import ArmState
 
 SIM = {
     "world": {"plugin": "sim.mujoco", "with": {"object": str(SKILLS / "objects/rect1.yaml")}},

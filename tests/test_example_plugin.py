@@ -19,9 +19,21 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """pip-install the example into a private folder (the venv is left untouched)."""
     target = tmp_path_factory.mktemp("site")
     subprocess.run(
-        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
-         "--target", str(target), str(EXAMPLE)],
-        check=True, capture_output=True, timeout=300,
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "--target",
+            str(target),
+            str(EXAMPLE),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
     )
     return target
 
@@ -29,14 +41,22 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_not_found_until_installed(installed: Path) -> None:
     absent = run_vistac("plugins", env={"VISTAC_DISABLE_PLUGIN_AUTOLOAD": "0"})
     assert "example.noisy_camera" not in absent.stdout
-    present = run_vistac("plugins", env={"PYTHONPATH": str(installed), "VISTAC_DISABLE_PLUGIN_AUTOLOAD": "0"})
+    present = run_vistac(
+        "plugins", env={"PYTHONPATH": str(installed), "VISTAC_DISABLE_PLUGIN_AUTOLOAD": "0"}
+    )
     assert "example.noisy_camera" in present.stdout and "[example]" in present.stdout
 
 
 def test_skill_uses_the_example_camera_and_observer(installed: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
-    result = run_vistac("-q", "run", str(EXAMPLE / "noisy_camera.yaml"), "--out", str(out),
-                        env={"PYTHONPATH": str(installed), "VISTAC_DISABLE_PLUGIN_AUTOLOAD": "0"})
+    result = run_vistac(
+        "-q",
+        "run",
+        str(EXAMPLE / "noisy_camera.yaml"),
+        "--out",
+        str(out),
+        env={"PYTHONPATH": str(installed), "VISTAC_DISABLE_PLUGIN_AUTOLOAD": "0"},
+    )
     assert result.returncode == 0, result.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "success" and len(summary["episodes"]) == 1

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 from conftest import run_vistac, write
-
 from vistac.errors import PluginError
 from vistac.pluginmanager import load_plugins
 from vistac.registry import Registry, suggest
@@ -16,7 +15,7 @@ from vistac.registry import Registry, suggest
 def test_unknown_name_gets_a_suggestion() -> None:
     registry = Registry()
     registry.add("arm", "sim.arm", "vistac.plugins.hardware.sim.arm:SimArm")
-    with pytest.raises(PluginError, match=r"did you mean 'sim.arm'"):
+    with pytest.raises(PluginError, match=r"did you mean 'sim\.arm'"):
         registry.info("sim.armm")
     assert suggest("zzz", ["sim.arm"]) == ""
 
@@ -37,7 +36,7 @@ def test_load_is_lazy_and_checks_the_class() -> None:
     registry.add("arm", "missing", "vistac.no_such_module:Arm")
     registry.add("arm", "notcfg", "vistac.registry:Registry")
     assert registry.names("arm") == ["missing", "notcfg"]
-    with pytest.raises(PluginError, match="cannot import 'vistac.no_such_module'"):
+    with pytest.raises(PluginError, match=r"cannot import 'vistac\.no_such_module'"):
         registry.load("missing")
     with pytest.raises(PluginError, match="no pydantic 'Config'"):
         registry.load("notcfg")
@@ -78,9 +77,12 @@ def _fake_distribution(site: Path, entry: str) -> None:
     dist = site / "vt_thirdparty-1.0.dist-info"
     write(dist / "METADATA", "Metadata-Version: 2.1\nName: vt-thirdparty\nVersion: 1.0\n")
     write(dist / "entry_points.txt", f"[vistac]\nthirdparty = {entry}\n")
-    write(site / "vt_thirdparty.py",
-          "from vistac import hookimpl\n@hookimpl\ndef vistac_register(registry):\n"
-          "    registry.add('action_selector', 'third.pick', 'vistac.plugins.actions.selectors:RandomSelector')\n")
+    write(
+        site / "vt_thirdparty.py",
+        "from vistac import hookimpl\n@hookimpl\ndef vistac_register(registry):\n"
+        "    registry.add('action_selector', 'third.pick',\n"
+        "                 'vistac.plugins.actions.selectors:RandomSelector')\n",
+    )
 
 
 def test_entry_point_autoload_and_disable_switch(tmp_path: Path) -> None:
@@ -94,7 +96,9 @@ def test_entry_point_autoload_and_disable_switch(tmp_path: Path) -> None:
 
 def test_broken_entry_point_does_not_break_the_cli(tmp_path: Path) -> None:
     _fake_distribution(tmp_path, "vt_missing_module")
-    result = run_vistac("plugins", env={"PYTHONPATH": str(tmp_path), "VISTAC_DISABLE_PLUGIN_AUTOLOAD": "0"})
+    result = run_vistac(
+        "plugins", env={"PYTHONPATH": str(tmp_path), "VISTAC_DISABLE_PLUGIN_AUTOLOAD": "0"}
+    )
     assert result.returncode == 0
     assert "failed:  thirdparty" in result.stdout
     assert "sim.mujoco" in result.stdout
@@ -108,7 +112,9 @@ def test_listing_plugins_imports_no_heavy_library() -> None:
     assert any(c["name"] == "sim.mujoco" for c in listed["components"])
     heavy = ("torch", "open3d", "mujoco", "rtde_control", "rtde_receive", "cv2")
     probe = run_vistac_importtime()
-    imported = {line.split("|")[-1].strip().split(".")[0] for line in probe.splitlines() if "|" in line}
+    imported = {
+        line.split("|")[-1].strip().split(".")[0] for line in probe.splitlines() if "|" in line
+    }
     assert not imported & set(heavy), f"vistac plugins imported {imported & set(heavy)}"
 
 
@@ -117,7 +123,12 @@ def run_vistac_importtime() -> str:
 
     from conftest import ROOT
 
-    result = subprocess.run([sys.executable, "-X", "importtime", "-m", "vistac.cli", "plugins"],
-                            capture_output=True, text=True, cwd=ROOT, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", "vistac.cli", "plugins"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=60,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     return result.stderr

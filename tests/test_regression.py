@@ -13,7 +13,6 @@ from typing import Any
 import pytest
 import yaml
 from conftest import ROOT, SKILLS
-
 from vistac.pluginmanager import Plugins
 from vistac.scheduler import Scheduler
 from vistac.skill import load_skill
@@ -37,9 +36,12 @@ def _digest(summary: dict[str, Any]) -> dict[str, Any]:
         "status": summary["status"],
         "views": summary["views"],
         "episodes": [
-            {"kind": e["action"]["kind"], "steps": e["steps"],
-             "displacement_m": e.get("object_displacement_m"),
-             "peak_force_n": e.get("peak_tactile_force_n")}
+            {
+                "kind": e["action"]["kind"],
+                "steps": e["steps"],
+                "displacement_m": e.get("object_displacement_m"),
+                "peak_force_n": e.get("peak_tactile_force_n"),
+            }
             for e in summary["episodes"]
         ],
     }
@@ -67,5 +69,7 @@ def test_regression(path: Path, plugins: Plugins, tmp_path: Path) -> None:
         expectations[_key(path)] = got
         EXPECTATIONS.write_text(json.dumps(expectations, indent=2, sort_keys=True) + "\n")
         return
-    assert _key(path) in expectations, f"no expectations for {_key(path)}; record them (see module doc)"
+    assert _key(path) in expectations, (
+        f"no expectations for {_key(path)}; record them (see module doc)"
+    )
     _compare(got, expectations[_key(path)])

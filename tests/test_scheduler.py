@@ -5,11 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import fixtures_plugin
 import numpy as np
 import pytest
 from conftest import write
-
-import fixtures_plugin
 from vistac.errors import ConfigError
 from vistac.pluginmanager import Plugins
 from vistac.protocols import Episode, StepObservation
@@ -18,11 +17,18 @@ from vistac.skill import load_skill
 from vistac.types import ArmState, Push, TactileReading
 
 
-def _run(tmp_path: Path, plugins: Plugins, tree: str, components: str = "arm: {plugin: test.arm}",
-         **skill_keys: object) -> tuple[Scheduler, object]:
+def _run(
+    tmp_path: Path,
+    plugins: Plugins,
+    tree: str,
+    components: str = "arm: {plugin: test.arm}",
+    **skill_keys: object,
+) -> tuple[Scheduler, object]:
     extra = "".join(f"{k}: {v}\n" for k, v in skill_keys.items())
-    path = write(tmp_path / "skill.yaml",
-                 f"version: 1\nname: t\n{extra}components:\n  {components}\ntree:\n{tree}\n")
+    path = write(
+        tmp_path / "skill.yaml",
+        f"version: 1\nname: t\n{extra}components:\n  {components}\ntree:\n{tree}\n",
+    )
     scheduler = Scheduler(load_skill(path, plugins.registry), plugins, tmp_path / "out")
     fixtures_plugin.STOP_CALLS.clear()
     return scheduler, scheduler.run()
@@ -50,11 +56,14 @@ def test_failing_body_fails_the_repeat(tmp_path: Path, plugins: Plugins) -> None
     assert result.status == "failure"
 
 
-@pytest.mark.parametrize(("error", "status", "code", "message"), [
-    ("data", "error", 1, "boom: synthetic sensor failure"),
-    ("bug", "error", 1, "RuntimeError: boom: synthetic bug"),
-    ("interrupt", "interrupted", 130, "interrupted by Ctrl-C"),
-])
+@pytest.mark.parametrize(
+    ("error", "status", "code", "message"),
+    [
+        ("data", "error", 1, "boom: synthetic sensor failure"),
+        ("bug", "error", 1, "RuntimeError: boom: synthetic bug"),
+        ("interrupt", "interrupted", 130, "interrupted by Ctrl-C"),
+    ],
+)
 def test_every_failure_stops_the_arm_and_is_recorded(
     tmp_path: Path, plugins: Plugins, error: str, status: str, code: int, message: str
 ) -> None:
@@ -83,8 +92,14 @@ def test_existing_run_is_not_overwritten(tmp_path: Path, plugins: Plugins) -> No
 
 
 def _episode(xs: np.ndarray) -> Episode:
-    steps = [StepObservation(i / 15, TactileReading(np.zeros((2, 2)), i / 15),
-                             ArmState(np.array([x, 0, 0, 0]), np.zeros(4), i / 15)) for i, x in enumerate(xs)]
+    steps = [
+        StepObservation(
+            i / 15,
+            TactileReading(np.zeros((2, 2)), i / 15),
+            ArmState(np.array([x, 0, 0, 0]), np.zeros(4), i / 15),
+        )
+        for i, x in enumerate(xs)
+    ]
     return Episode(0, Push(np.zeros(2), 0.0, 0.02), steps)
 
 
@@ -92,8 +107,11 @@ def test_belief_nodes_with_a_known_filter(tmp_path: Path, plugins: Plugins) -> N
     from vistac.behaviours.belief import BeliefConverged
     from vistac.testing import build_components
 
-    ctx = build_components({"filter": {"plugin": "test.kalman", "with": {"noise_var": 0.04}}},
-                           tmp_path, plugins=plugins)
+    ctx = build_components(
+        {"filter": {"plugin": "test.kalman", "with": {"noise_var": 0.04}}},
+        tmp_path,
+        plugins=plugins,
+    )
     kalman = ctx.component("filter")
     kalman.initialise(None)
     rng = np.random.default_rng(0)
@@ -111,14 +129,18 @@ FILTER = "arm: {plugin: test.arm}\n  filter: {plugin: test.kalman, with: {noise_
 
 
 def test_interact_until_converged(tmp_path: Path, plugins: Plugins) -> None:
-    tree = ("  repeat: {do: [fake_interaction, update_belief], max: 20,"
-            " until: {belief_converged: {max_std: {'m_*': 0.02}}}}")
+    tree = (
+        "  repeat: {do: [fake_interaction, update_belief], max: 20,"
+        " until: {belief_converged: {max_std: {'m_*': 0.02}}}}"
+    )
     scheduler, result = _run(tmp_path, plugins, tree, components=FILTER % "")
     assert result.status == "success"
     # std after k episodes of 15 measurements: 1/sqrt(1 + 15 k / 0.04) <= 0.02 from k = 7.
     assert scheduler.ctx.episode_count == 7
     assert scheduler.ctx.results["converged"] is True
-    assert result.summary["belief"]["m_0"]["mean"] == pytest.approx(0.7, abs=0.06)  # 3 standard errors
+    assert result.summary["belief"]["m_0"]["mean"] == pytest.approx(
+        0.7, abs=0.06
+    )  # 3 standard errors
 
 
 def test_diverged_filter_stops_the_run(tmp_path: Path, plugins: Plugins) -> None:

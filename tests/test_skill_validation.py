@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 from conftest import SKILLS, write
-
 from vistac.errors import ConfigError
 from vistac.pluginmanager import Plugins
 from vistac.skill import apply_overrides, load_skill
@@ -40,7 +39,10 @@ def test_two_mistakes_are_both_reported_with_paths_and_exit_2(tmp_path: Path, cl
     ("text", "expected"),
     [
         ("version: 1\nname: x\ntree: [look\n", "malformed YAML: line"),
-        ("version: 1\nname: x\ncomponents: {}\ntree: [lok]\n", "unknown tree node 'lok' (did you mean 'look'?)"),
+        (
+            "version: 1\nname: x\ncomponents: {}\ntree: [lok]\n",
+            "unknown tree node 'lok' (did you mean 'look'?)",
+        ),
         ("- just\n- a list\n", "a skill file must be a YAML mapping"),
         ("version: 2\nname: x\ntree: stop\n", "version: Input should be 1"),
         ("version: 1\nname: x\ntree: stop\nextra: 1\n", "extra: Extra inputs are not permitted"),
@@ -62,7 +64,9 @@ def test_missing_file(tmp_path: Path, cli: Cli) -> None:
 
 
 def test_data_flow_and_roles_are_checked(tmp_path: Path, plugins: Plugins) -> None:
-    skill = write(tmp_path / "s.yaml", """\
+    skill = write(
+        tmp_path / "s.yaml",
+        """\
 version: 1
 name: flow
 components:
@@ -70,7 +74,8 @@ components:
 tree:
   - needs_widget
   - {choose_action: {selector: arm}}
-""")
+""",
+    )
     with pytest.raises(ConfigError) as info:
         load_skill(skill, plugins.registry)
     text = str(info.value)
@@ -81,12 +86,15 @@ tree:
 
 
 def test_repeat_arguments_and_nested_errors(tmp_path: Path, plugins: Plugins) -> None:
-    skill = write(tmp_path / "s.yaml", """\
+    skill = write(
+        tmp_path / "s.yaml",
+        """\
 version: 1
 name: rep
 tree:
   repeat: {do: [count, {count: {tickz: 2}}], until: {count_at_least: {n: x}}, max: 0}
-""")
+""",
+    )
     with pytest.raises(ConfigError) as info:
         load_skill(skill, plugins.registry)
     text = str(info.value)
@@ -101,19 +109,26 @@ tree:
 
 def test_overrides_and_relative_paths(tmp_path: Path, plugins: Plugins) -> None:
     write(tmp_path / "skills/objects/box.yaml", (SKILLS / "objects/rect1.yaml").read_text())
-    skill_path = write(tmp_path / "skills/s.yaml", """\
+    skill_path = write(
+        tmp_path / "skills/s.yaml",
+        """\
 version: 1
 name: paths
 components:
   world: {plugin: sim.mujoco, with: {object: objects/box.yaml}}
   arm: {plugin: sim.arm}
 tree: stop
-""")
-    skill = load_skill(skill_path, plugins.registry, ["components.arm.with.max_speed_mps=0.01", "seed=7"])
-    assert skill.components["world"].config.object == (tmp_path / "skills/objects/box.yaml").resolve()
+""",
+    )
+    skill = load_skill(
+        skill_path, plugins.registry, ["components.arm.with.max_speed_mps=0.01", "seed=7"]
+    )
+    assert (
+        skill.components["world"].config.object == (tmp_path / "skills/objects/box.yaml").resolve()
+    )
     assert skill.components["arm"].config.max_speed_mps == 0.01
     assert skill.seed == 7
-    with pytest.raises(ConfigError, match="components.arm.with.max_speed_mps"):
+    with pytest.raises(ConfigError, match=r"components\.arm\.with\.max_speed_mps"):
         load_skill(skill_path, plugins.registry, ["components.arm.with.max_speed_mps=-1"])
 
 
@@ -121,10 +136,15 @@ def test_apply_overrides_reports_bad_keys() -> None:
     assert apply_overrides({"a": {"b": 1}}, ["a.c=[1, 2]"]) == {"a": {"b": 1, "c": [1, 2]}}
     with pytest.raises(ConfigError, match="not of the form"):
         apply_overrides({}, ["nokey"])
-    with pytest.raises(ConfigError, match="a.b.c: cannot set inside a int"):
+    with pytest.raises(ConfigError, match=r"a\.b\.c: cannot set inside a int"):
         apply_overrides({"a": {"b": 1}}, ["a.b.c=2"])
     tree = {"tree": {"sequence": ["look", {"repeat": {"max": 4}}]}}
-    assert apply_overrides(tree, ["tree.sequence.1.repeat.max=1"])["tree"]["sequence"][1]["repeat"]["max"] == 1
+    assert (
+        apply_overrides(tree, ["tree.sequence.1.repeat.max=1"])["tree"]["sequence"][1]["repeat"][
+            "max"
+        ]
+        == 1
+    )
     with pytest.raises(ConfigError, match="no list item '5'"):
         apply_overrides(tree, ["tree.sequence.5=stop"])
 
@@ -132,5 +152,5 @@ def test_apply_overrides_reports_bad_keys() -> None:
 def test_every_shipped_skill_validates(cli: Cli) -> None:
     skills = sorted(SKILLS.glob("*.yaml"))
     assert skills
-    code, out, err = cli("validate", *map(str, skills))
+    code, _out, err = cli("validate", *map(str, skills))
     assert code == 0, err

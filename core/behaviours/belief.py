@@ -7,7 +7,6 @@ import logging
 
 from py_trees.common import Status
 from pydantic import Field
-
 from vistac.component import ComponentConfig
 from vistac.tree import SkillBehaviour
 from vistac.types import GaussianBelief
@@ -52,7 +51,8 @@ class BeliefConverged(SkillBehaviour):
     def update(self) -> Status:
         belief: GaussianBelief = self.read("belief")
         unconverged = [
-            name for name, std in zip(belief.names, belief.std, strict=True)
+            name
+            for name, std in zip(belief.names, belief.std, strict=True)
             if (limit := self._limit(name)) is not None and std > limit
         ]
         self.run.results["converged"] = not unconverged

@@ -9,7 +9,6 @@ from typing import Any
 import numpy as np
 from py_trees.common import Status
 from pydantic import Field
-
 from vistac.component import ComponentConfig
 from vistac.errors import DataError
 from vistac.protocols import Episode, Scene, StepObservation
@@ -52,7 +51,9 @@ class ChooseAction(SkillBehaviour):
             raise DataError("choose_action: no reachable push or pull on the observed object")
         action = self.component("selector").select(candidates, scene, rng)
         self.write("action", action)
-        self.run.hook.vistac_action(run=self.run.info, episode=self.run.episode_count, action=action)
+        self.run.hook.vistac_action(
+            run=self.run.info, episode=self.run.episode_count, action=action
+        )
         return Status.SUCCESS
 
 
@@ -74,7 +75,9 @@ class ExecuteAction(SkillBehaviour):
         depth_width: int = Field(64, gt=0, description="width of the per-step depth image")
         depth_height: int = Field(64, gt=0)
         record_depth: bool = True
-        max_sensor_age_s: float = Field(0.2, gt=0, description="older tactile/arm data stops the arm")
+        max_sensor_age_s: float = Field(
+            0.2, gt=0, description="older tactile/arm data stops the arm"
+        )
 
     def initialise(self) -> None:
         self.action: Action = self.read("action")
@@ -82,8 +85,14 @@ class ExecuteAction(SkillBehaviour):
         self.observing = False
         self.component("executor").start(self.action)
         point = action_point(self.action)
-        log.info("episode %d: %s at (%.3f, %.3f) m towards %.0f deg", self.episode.index,
-                 self.action.kind, point[0], point[1], np.degrees(self.action.pd_rad))
+        log.info(
+            "episode %d: %s at (%.3f, %.3f) m towards %.0f deg",
+            self.episode.index,
+            self.action.kind,
+            point[0],
+            point[1],
+            np.degrees(self.action.pd_rad),
+        )
 
     def update(self) -> Status:
         if self.observing:
@@ -112,8 +121,12 @@ class ExecuteAction(SkillBehaviour):
         poses = world.ground_truth_poses() if world is not None else None
         step = StepObservation(self.run.time_s, tactile, arm_state, depth, poses)
         self.episode.steps.append(step)
-        self.run.hook.vistac_observation(run=self.run.info, episode=self.episode.index,
-                                         step=len(self.episode.steps) - 1, observation=step)
+        self.run.hook.vistac_observation(
+            run=self.run.info,
+            episode=self.episode.index,
+            step=len(self.episode.steps) - 1,
+            observation=step,
+        )
 
     def _finish(self) -> None:
         world = self.run.world_if_built()
@@ -124,5 +137,10 @@ class ExecuteAction(SkillBehaviour):
         self.run.hook.vistac_episode_end(run=self.run.info, episode=self.episode)
         line: dict[str, Any] = self.run.recorder.episodes[-1]
         moved = line.get("object_displacement_m")
-        log.info("episode %d done: %d steps%s -> %s", self.episode.index, len(self.episode.steps),
-                 f", object moved {max(moved) * 100:.1f} cm" if moved else "", path)
+        log.info(
+            "episode %d done: %d steps%s -> %s",
+            self.episode.index,
+            len(self.episode.steps),
+            f", object moved {max(moved) * 100:.1f} cm" if moved else "",
+            path,
+        )

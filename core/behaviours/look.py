@@ -6,7 +6,6 @@ import logging
 
 from py_trees.common import Status
 from pydantic import Field
-
 from vistac.component import ComponentConfig
 from vistac.errors import DataError
 from vistac.tree import SkillBehaviour
@@ -53,8 +52,9 @@ class Look(SkillBehaviour):
         cloud = rgbd.point_cloud()
         self.run.recorder.save_view(rgbd)
         self.clouds.append(cloud)
-        log.info("view %d: %d points from (%.2f, %.2f, %.2f)", len(self.clouds), len(cloud),
-                 *view.eye_m)
+        log.info(
+            "view %d: %d points from (%.2f, %.2f, %.2f)", len(self.clouds), len(cloud), *view.eye_m
+        )
         estimator = self.component("shape")
         if estimator is not None:
             self.shape_estimate = estimator.fit(PointCloud.merge(self.clouds))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from py_trees.common import Status
-
 from vistac.tree import SkillBehaviour
 
 

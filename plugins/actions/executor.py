@@ -24,7 +24,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import Field
-
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import HardwareError, PluginError
 from vistac.protocols import Arm, Gripper

@@ -1,10 +1,11 @@
 """``actions.outline``: push and pull candidates from the outline of the observed cloud.
 
 Needs no shape model: the object is the largest connected cluster (on a 2D grid) of the
-points between the table plane (z = 0) and ``max_object_height_m`` — which leaves out a
-gripper hovering in view — and its outline is the 2D convex hull of that cluster. Pushes start on the outline and go inwards along
-the edge normal perturbed by U(-jitter, jitter); pulls grasp across the outline along a direction in which the outline fits the gripper, and move along a direction drawn
-around ``pull_towards_rad``.
+points between the table plane (z = 0) and ``max_object_height_m`` (which leaves out a
+gripper hovering in view), and its outline is the 2D convex hull of that cluster. Pushes
+start on the outline and go inwards along the edge normal perturbed by U(-jitter, jitter);
+pulls grasp across the outline where the chord fits the gripper, then move along a direction
+drawn around ``pull_towards_rad``.
 """
 
 from __future__ import annotations
@@ -16,7 +17,6 @@ import numpy as np
 from pydantic import Field
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
-
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
 from vistac.protocols import Scene
@@ -35,20 +35,33 @@ class OutlineSampler(Component):
 
     class Config(ComponentConfig):
         samples: int = Field(32, gt=0, description="candidates per call")
-        interactions: list[Literal["push", "pull"]] = Field(default_factory=lambda: ["push", "pull"],
-                                                            min_length=1)
+        interactions: list[Literal["push", "pull"]] = Field(default=["push", "pull"], min_length=1)
         speed_mps: float = Field(0.02, gt=0, le=0.25)
         duration_s: float = Field(5.0, gt=0)
-        table_clearance_m: float = Field(0.008, ge=0, description="points this far above z=0 are object")
-        max_object_height_m: float = Field(0.1, gt=0, description="points higher up are not the object")
+        table_clearance_m: float = Field(
+            0.008, ge=0, description="points this far above z=0 are object"
+        )
+        max_object_height_m: float = Field(
+            0.1, gt=0, description="points higher up are not the object"
+        )
         cluster_cell_m: float = Field(0.01, gt=0, description="grid cell for connected clusters")
-        jitter_deg: float = Field(5.0, ge=0, le=45, description="push direction noise around the normal")
-        max_grasp_width_m: float = Field(0.12, gt=0, description="widest object the gripper can close on")
-        finger_half_width_m: float = Field(0.03, ge=0, description="keeps grasps off the outline's ends")
+        jitter_deg: float = Field(
+            5.0, ge=0, le=45, description="push direction noise around the normal"
+        )
+        max_grasp_width_m: float = Field(
+            0.12, gt=0, description="widest object the gripper can close on"
+        )
+        finger_half_width_m: float = Field(
+            0.03, ge=0, description="keeps grasps off the outline's ends"
+        )
         workspace_xy_m: tuple[tuple[float, float], tuple[float, float]] = (
-            (-0.45, 0.45), (0.2, 0.8))
+            (-0.45, 0.45),
+            (0.2, 0.8),
+        )
         """((x min, x max), (y min, y max)): the gripper's path must stay inside."""
-        pull_towards_rad: float = Field(-np.pi / 2, description="mean pull direction (-y: towards the robot)")
+        pull_towards_rad: float = Field(
+            -np.pi / 2, description="mean pull direction (-y: towards the robot)"
+        )
         pull_spread_rad: float = Field(np.pi / 3, ge=0, description="pull direction ~ U(+-spread)")
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
@@ -72,8 +85,14 @@ class OutlineSampler(Component):
         end = start + heading * action.speed_mps * action.duration_s
         (x_min, x_max), (y_min, y_max) = self.config.workspace_xy_m
         points = np.stack([start, end])
-        return bool(np.all((points[:, 0] >= x_min) & (points[:, 0] <= x_max)
-                           & (points[:, 1] >= y_min) & (points[:, 1] <= y_max)))
+        return bool(
+            np.all(
+                (points[:, 0] >= x_min)
+                & (points[:, 0] <= x_max)
+                & (points[:, 1] >= y_min)
+                & (points[:, 1] <= y_max)
+            )
+        )
 
     def outline(self, points_m: FloatArray) -> FloatArray:
         """Counter-clockwise convex outline [K, 2] of the points above the table."""
@@ -108,10 +127,14 @@ class OutlineSampler(Component):
             margin = min(self.config.finger_half_width_m, 0.4 * np.ptp(offsets))
             offset = rng.uniform(offsets.min() + margin, offsets.max() - margin)
             centroid = hull_xy.mean(axis=0)
-            midpoint, width_m = chord(hull_xy, centroid + (offset - centroid @ across) * across, axis_rad)
+            midpoint, width_m = chord(
+                hull_xy, centroid + (offset - centroid @ across) * across, axis_rad
+            )
             if width_m <= self.config.max_grasp_width_m:
                 pd = self.config.pull_towards_rad + rng.uniform(-1, 1) * self.config.pull_spread_rad
-                return Pull(midpoint, float(pd), self.config.speed_mps, axis_rad, self.config.duration_s)
+                return Pull(
+                    midpoint, float(pd), self.config.speed_mps, axis_rad, self.config.duration_s
+                )
         return None
 
 

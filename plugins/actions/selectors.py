@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-
 from vistac.component import Component, ComponentConfig
 from vistac.errors import DataError
 from vistac.protocols import Scene
@@ -20,7 +19,9 @@ class RandomSelector(Component):
     class Config(ComponentConfig):
         pass
 
-    def select(self, candidates: Sequence[Action], scene: Scene, rng: np.random.Generator) -> Action:
+    def select(
+        self, candidates: Sequence[Action], scene: Scene, rng: np.random.Generator
+    ) -> Action:
         if not candidates:
             raise DataError("actions.random: no candidate actions to choose from")
         return candidates[int(rng.integers(len(candidates)))]

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import numpy as np
 from pydantic import Field
-
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.types import FloatArray, PointCloud, ShapeEstimate, Viewpoint
 
 
-def object_centroid(cloud: PointCloud | None, fallback_m: FloatArray, clearance_m: float) -> FloatArray:
+def object_centroid(
+    cloud: PointCloud | None, fallback_m: FloatArray, clearance_m: float
+) -> FloatArray:
     """Centroid [3] of the cloud's points above the table, or ``fallback_m`` when none."""
     if cloud is None:
         return fallback_m
@@ -43,7 +44,12 @@ class UniformViews(Component):
     ) -> Viewpoint | None:
         if views_taken >= self.config.views:
             return None
-        target = object_centroid(cloud, np.array(self.config.target_m), self.config.table_clearance_m)
-        azimuth = np.radians(self.config.start_azimuth_deg) + 2 * np.pi * views_taken / self.config.views
-        return Viewpoint.on_hemisphere(target, self.config.radius_m, azimuth,
-                                       np.radians(self.config.elevation_deg))
+        target = object_centroid(
+            cloud, np.array(self.config.target_m), self.config.table_clearance_m
+        )
+        azimuth = (
+            np.radians(self.config.start_azimuth_deg) + 2 * np.pi * views_taken / self.config.views
+        )
+        return Viewpoint.on_hemisphere(
+            target, self.config.radius_m, azimuth, np.radians(self.config.elevation_deg)
+        )

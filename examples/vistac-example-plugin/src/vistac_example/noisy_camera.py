@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 from pydantic import Field
-
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.types import RGBD, Viewpoint
 
