@@ -17,19 +17,23 @@ z, pitch, roll; rotation ``Rz(yaw) Ry(pitch) Rx(roll)``. On a table (the default
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.special import expit, logsumexp
-
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
-from vistac.plugins.shape.superquadric import radial_distance_m
+from vistac.plugins.shape.superquadric import (
+    distance_to_surface_m,
+    radial_distance_m,
+    surface_area_m2,
+)
 from vistac.types import FloatArray, PointCloud, ShapeEstimate, Superquadric
 
 logger = logging.getLogger(__name__)
@@ -51,6 +55,10 @@ _INIT_PERCENTILES = (2.0, 98.0)
 _FD_STEP = 1e-6
 _FD_FLOOR = 0.01
 _MIN_VOLUME_M3 = 1e-9
+_LOG_AREA_FLOOR = np.log(1e-8)
+_MIN_LINK_POINTS = 10
+_REFIT_ROUNDS = 2
+_AREA_NOISE_CAP_M = 0.002
 
 IntArray = NDArray[np.int64]
 
@@ -62,11 +70,12 @@ class EMSOptions:
     outlier_ratio: float = 0.2
     max_iterations: int = 20
     max_switches: int = 2
-    m_step_evaluations: int = 3
+    m_step_evaluations: int = 8
     tolerance_nats: float = 1e-3
     min_noise_m: float = 5e-4
     taper: bool = True
     on_table: bool = True
+    max_fit_points: int = 1000
 
 
 @dataclass(frozen=True)
@@ -109,12 +118,15 @@ class _Problem:
         """Radial distance of every point to each superquadric: full [B, 13] -> [B, N]."""
         rotation = _rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
         centre = full[:, [_X, _Y, _Z]]
-        local = np.einsum("nj,bjk->bnk", self.points_m, rotation)
-        local -= np.einsum("bj,bjk->bk", centre, rotation)[:, None, :]
+        local = np.matmul(self.points_m - centre[:, None, :], rotation)
         return radial_distance_m(local, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER])
 
     def log_inlier_density(self, distance_m: FloatArray, noise_var_m2: float) -> FloatArray:
         return -1.5 * np.log(2 * np.pi * noise_var_m2) - distance_m**2 / (2 * noise_var_m2)
+
+    def log_area(self, full: FloatArray) -> FloatArray:
+        """log of the approximate surface area of each superquadric: full [B, 13] -> [B]."""
+        return np.log(surface_area_m2(full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER]))
 
     def posterior(self, distance_m: FloatArray, noise_var_m2: float) -> FloatArray:
         """Inlier probability of eq. 9 per point: [..., N]."""
@@ -122,14 +134,18 @@ class _Problem:
         log_outlier = self.log_outlier_density + np.log(ratio / (1 - ratio))
         return expit(self.log_inlier_density(distance_m, noise_var_m2) - log_outlier)
 
-    def nll(self, distance_m: FloatArray, noise_var_m2: float) -> FloatArray:
-        """Negative log-likelihood of the Gaussian-uniform mixture (eq. 4): [...]."""
+    def nll(self, full: FloatArray, noise_var_m2: float) -> FloatArray:
+        """Objective per superquadric, full [B, 13] -> [B]: the negative log-likelihood of the
+        Gaussian-uniform mixture (eq. 4) plus the area term of eq. 7 (inlier count x log A),
+        which keeps a partly seen shape from growing into the unseen space."""
         ratio = self.options.outlier_ratio
+        distance = self.distances(full)
         terms = np.stack(np.broadcast_arrays(
-            np.log(1 - ratio) + self.log_inlier_density(distance_m, noise_var_m2),
+            np.log(1 - ratio) + self.log_inlier_density(distance, noise_var_m2),
             np.log(ratio) + self.log_outlier_density,
         ))
-        return -logsumexp(terms, axis=0).sum(axis=-1)
+        inliers = self.posterior(distance, noise_var_m2).sum(axis=-1)
+        return -logsumexp(terms, axis=0).sum(axis=-1) + inliers * self.log_area(full)
 
 
 def _rotation_zyx(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:
@@ -170,14 +186,15 @@ def to_superquadric(params: FloatArray) -> Superquadric:
 
 
 def _principal_frame(points_m: FloatArray, on_table: bool) -> FloatArray:
-    """Rotation [3, 3] whose columns are the principal axes (yaw only on a table)."""
+    """Rotation [3, 3] with y along the major principal axis (the taper's axis) and, off the
+    table, z along the minor one; on a table only the yaw is free."""
     centred = points_m - points_m.mean(axis=0)
     if on_table:
         _, vectors = np.linalg.eigh(centred[:, :2].T @ centred[:, :2])
-        yaw = float(np.arctan2(vectors[1, 1], vectors[0, 1]))
+        yaw = float(np.arctan2(vectors[1, 1], vectors[0, 1])) - np.pi / 2
         return _rotation_zyx(np.array([yaw]), np.zeros(1), np.zeros(1))[0]
     _, vectors = np.linalg.eigh(centred.T @ centred)
-    frame = vectors[:, ::-1].copy()
+    frame = vectors[:, [1, 2, 0]].copy()
     frame[:, 2] = np.cross(frame[:, 0], frame[:, 1])
     return frame
 
@@ -228,31 +245,44 @@ def _make_problem(points_m: FloatArray, options: EMSOptions) -> _Problem:
 # EM with switching
 
 
-def _m_step(problem: _Problem, params: FloatArray, weights: FloatArray) -> FloatArray:
-    """A few bounded Gauss-Newton steps on sqrt(p) * distance. Returns the new params [13]."""
-    sqrt_w = np.sqrt(weights)
+def _m_step(problem: _Problem, params: FloatArray, weights: FloatArray,
+            noise_var_m2: float) -> FloatArray:
+    """A few bounded trust-region steps on eq. 7 (times 2 sigma^2): the residuals are
+    sqrt(p_i) * distance_i and one area residual. Returns the new params [13]."""
     free = problem.free
-
-    def residuals(x: FloatArray) -> FloatArray:
-        return sqrt_w * problem.distances(problem.expand(x[None, :], params))[0]
-
-    def jacobian(x: FloatArray) -> FloatArray:
-        return _jacobian(problem, params, x, sqrt_w)
-
+    residuals = _Residuals(problem, params, weights, noise_var_m2)
     x0 = np.clip(params[free], problem.lower[free], problem.upper[free])
-    result = least_squares(residuals, x0, jac=jacobian, bounds=(problem.lower[free],
+    result = least_squares(residuals, x0, jac=residuals.jacobian, bounds=(problem.lower[free],
                            problem.upper[free]), max_nfev=problem.options.m_step_evaluations,
                            x_scale="jac")
     return problem.expand(result.x[None, :], params)[0]
 
 
-def _jacobian(problem: _Problem, base: FloatArray, x: FloatArray,
-              sqrt_w: FloatArray) -> FloatArray:
-    """Forward-difference Jacobian [N, F] of the weighted residuals, in one batched pass."""
-    step = _FD_STEP * np.maximum(np.abs(x), _FD_FLOOR)
-    batch = np.vstack([x, x + np.diag(step)])
-    distances = problem.distances(problem.expand(batch, base))
-    return ((distances[1:] - distances[0]) / step[:, None] * sqrt_w).T
+class _Residuals:
+    """Weighted distances [N] and the area residual [1] of eq. 7 as a function of the free
+    parameters [F]; the Jacobian [N + 1, F] by forward differences in one batched pass."""
+
+    def __init__(self, problem: _Problem, base: FloatArray, weights: FloatArray,
+                 noise_var_m2: float) -> None:
+        self.problem, self.base = problem, base
+        self.sqrt_w = np.sqrt(weights)
+        # sigma^2 is capped in the area term: while the fit is still coarse (large sigma) the
+        # area term would otherwise shrink the superquadric to nothing.
+        self.area_gain = 2.0 * min(noise_var_m2, _AREA_NOISE_CAP_M**2) * float(weights.sum())
+
+    def batch(self, free_values: FloatArray) -> FloatArray:
+        full = self.problem.expand(free_values, self.base)
+        distance = self.sqrt_w * self.problem.distances(full)
+        log_area = self.problem.log_area(full) - _LOG_AREA_FLOOR
+        return np.hstack([distance, np.sqrt(self.area_gain * log_area)[:, None]])
+
+    def __call__(self, x: FloatArray) -> FloatArray:
+        return self.batch(x[None, :])[0]
+
+    def jacobian(self, x: FloatArray) -> FloatArray:
+        step = _FD_STEP * np.maximum(np.abs(x), _FD_FLOOR)
+        values = self.batch(np.vstack([x, x + np.diag(step)]))
+        return ((values[1:] - values[0]) / step[:, None]).T
 
 
 def _noise_var(problem: _Problem, distance_m: FloatArray, weights: FloatArray) -> float:
@@ -313,10 +343,9 @@ class _State:
 
 def _em_iteration(problem: _Problem, state: _State) -> _State:
     weights = problem.posterior(problem.distances(state.params[None])[0], state.noise_var_m2)
-    params = _m_step(problem, state.params, weights)
-    distance = problem.distances(params[None])[0]
-    noise_var = _noise_var(problem, distance, weights)
-    return _State(params, noise_var, float(problem.nll(distance, noise_var)))
+    params = _m_step(problem, state.params, weights, state.noise_var_m2)
+    noise_var = _noise_var(problem, problem.distances(params[None])[0], weights)
+    return _State(params, noise_var, float(problem.nll(params[None], noise_var)[0]))
 
 
 def _switch(problem: _Problem, state: _State) -> _State | None:
@@ -325,7 +354,7 @@ def _switch(problem: _Problem, state: _State) -> _State | None:
     candidates = np.clip(candidates, problem.lower, problem.upper)
     if problem.on_table:
         candidates[:, _Z] = candidates[:, _A3]
-    nll = problem.nll(problem.distances(candidates), state.noise_var_m2)
+    nll = problem.nll(candidates, state.noise_var_m2)
     for index in np.argsort(nll):
         trial = _em_iteration(problem, _State(candidates[index], state.noise_var_m2, nll[index]))
         if trial.nll < state.nll - problem.options.tolerance_nats * len(problem.points_m):
@@ -338,7 +367,7 @@ def _switch(problem: _Problem, state: _State) -> _State | None:
 def _run_ems(problem: _Problem, params: FloatArray) -> _State:
     distance = problem.distances(params[None])[0]
     noise_var = _noise_var(problem, distance, np.ones_like(distance))
-    state = _State(params, noise_var, float(problem.nll(distance, noise_var)))
+    state = _State(params, noise_var, float(problem.nll(params[None], noise_var)[0]))
     switches = 0
     tolerance = problem.options.tolerance_nats * len(problem.points_m)
     for _ in range(problem.options.max_iterations):
@@ -357,11 +386,12 @@ def _run_ems(problem: _Problem, params: FloatArray) -> _State:
     return state
 
 
-def _parameter_std(problem: _Problem, params: FloatArray, weights: FloatArray) -> FloatArray:
+def _parameter_std(problem: _Problem, params: FloatArray, weights: FloatArray,
+                   noise_var_m2: float) -> FloatArray:
     """Standard deviations [13] from the Jacobian at the optimum: sqrt(diag((J^T J)^-1) s^2)."""
-    sqrt_w = np.sqrt(weights)
-    jac = _jacobian(problem, params, params[problem.free], sqrt_w)
-    residual = sqrt_w * problem.distances(params[None])[0]
+    residuals = _Residuals(problem, params, weights, noise_var_m2)
+    jac = residuals.jacobian(params[problem.free])
+    residual = residuals(params[problem.free])[:-1]
     dof = max(float(weights.sum()) - len(problem.free), 1.0)
     cov = np.linalg.pinv(jac.T @ jac) * float(residual @ residual) / dof
     std = np.zeros(len(PARAMETER_NAMES))
@@ -386,12 +416,22 @@ def _canonical(params: FloatArray, options: EMSOptions) -> FloatArray:
 
 
 def fit_superquadric(points_m: FloatArray, options: EMSOptions) -> EMSResult:
-    """Fit one (tapered) superquadric to points [N, 3] (N >= 10, finite) by EMS."""
-    problem = _make_problem(points_m, options)
-    state = _run_ems(problem, _initial_params(points_m, options.on_table))
+    """Fit one (tapered) superquadric to points [N, 3] (N >= 10, finite) by EMS.
+
+    EM runs on at most ``max_fit_points`` points (a fixed random subset); the inlier
+    probabilities and the uncertainty use all points.
+    """
+    subset = points_m
+    if len(points_m) > options.max_fit_points:
+        chosen = np.random.default_rng(0).choice(len(points_m), options.max_fit_points,
+                                                 replace=False)
+        subset = points_m[chosen]
+    state = _run_ems(_make_problem(subset, options), _initial_params(subset, options.on_table))
     params = _canonical(state.params, options)
+    problem = _make_problem(points_m, options)
     weights = problem.posterior(problem.distances(params[None])[0], state.noise_var_m2)
-    return EMSResult(to_superquadric(params), params, _parameter_std(problem, params, weights),
+    return EMSResult(to_superquadric(params), params, _parameter_std(problem, params, weights,
+                                                                  state.noise_var_m2),
                      weights, float(np.sqrt(state.noise_var_m2)), state.nll)
 
 
@@ -399,11 +439,10 @@ def fit_superquadric(points_m: FloatArray, options: EMSOptions) -> EMSResult:
 # Multi-link recovery (III-B3)
 
 
-def largest_cluster(points_m: FloatArray, radius_m: float) -> FloatArray:
-    """Indices of the largest group of points linked by gaps <= radius_m: [K]."""
+def largest_cluster(points_m: FloatArray, radius_m: float) -> IntArray:
+    """Indices [K] of the largest group of points chained by gaps <= radius_m (DBSCAN with
+    min_samples = 1: single-linkage clusters)."""
     pairs = cKDTree(points_m).query_pairs(radius_m, output_type="ndarray")
-    from scipy.sparse import coo_matrix
-
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
                        shape=(len(points_m), len(points_m)))
     _, labels = connected_components(graph, directed=False)
@@ -415,7 +454,7 @@ def fit_links(points_m: FloatArray, options: EMSOptions, max_links: int,
     """Fit superquadrics until fewer than ``outlier_threshold_points`` points are unexplained.
 
     Each new link is fitted to the largest cluster of the points that no link explains
-    (inlier probability < 0.5); then every link is refitted to the points nearest to it.
+    (inlier probability < 0.5); then every link is refitted to what the others leave.
     """
     links = [fit_superquadric(points_m, options)]
     while len(links) < max_links:
@@ -426,30 +465,100 @@ def fit_links(points_m: FloatArray, options: EMSOptions, max_links: int,
         cluster = unexplained[largest_cluster(points_m[unexplained], cluster_radius_m)]
         if len(cluster) < outlier_threshold_points:
             break
-        links.append(fit_superquadric(points_m[cluster], options))
-        links = _refit_by_assignment(points_m, links, options)
+        links.append(_over_all_points(fit_superquadric(points_m[cluster], options), points_m,
+                                      options))
+        links = _refit_alternating(points_m, links, options)
     return links
 
 
-def _refit_by_assignment(points_m: FloatArray, links: list[EMSResult],
-                         options: EMSOptions) -> list[EMSResult]:
-    """Refit each link to the points closest to it (one k-means style pass)."""
-    nearest = np.argmin([_distance_to(link, points_m) for link in links], axis=0)
-    refitted = []
-    for index, link in enumerate(links):
-        own = points_m[nearest == index]
-        refitted.append(fit_superquadric(own, options) if len(own) >= 10 else link)
-    full = [_with_posterior(link, points_m, options) for link in refitted]
-    return full
+def _refit_alternating(points_m: FloatArray, links: list[EMSResult],
+                       options: EMSOptions) -> list[EMSResult]:
+    """Refit each link in turn to the points that the other links do not explain, for
+    ``_REFIT_ROUNDS`` rounds; inlier probabilities are then over all points."""
+    probabilities = [link.inlier_probability for link in links]
+    for _ in range(_REFIT_ROUNDS):
+        for index in range(len(links)):
+            others = [p for k, p in enumerate(probabilities) if k != index]
+            own = points_m[np.max(others, axis=0) < 0.5]
+            if len(own) < _MIN_LINK_POINTS:
+                continue
+            links[index] = _over_all_points(fit_superquadric(own, options), points_m, options)
+            probabilities[index] = links[index].inlier_probability
+    return links
 
 
-def _distance_to(link: EMSResult, points_m: FloatArray) -> FloatArray:
-    from vistac.plugins.shape.superquadric import distance_to_surface_m
+def _over_all_points(link: EMSResult, points_m: FloatArray, options: EMSOptions) -> EMSResult:
+    """``link`` with its inlier probabilities evaluated for all points [N, 3]."""
+    distance = distance_to_surface_m(link.superquadric, points_m)
+    probability = _make_problem(points_m, options).posterior(distance, link.noise_m**2)
+    return replace(link, inlier_probability=probability)
 
-    return distance_to_surface_m(link.superquadric, points_m)
+
+# ---------------------------------------------------------------------------------------------
+# The component
 
 
-def _with_posterior(link: EMSResult, points_m: FloatArray, options: EMSOptions) -> EMSResult:
-    problem = _make_problem(points_m, options)
-    weights = problem.posterior(_distance_to(link, points_m), link.noise_m**2)
-    return EMSResult(link.superquadric, link.params, link.std, weights, link.noise_m, link.nll)
+class EMSEstimator(Component):
+    """Superquadric shape estimator ``shape.ems`` (one superquadric per link)."""
+
+    kind = "shape_estimator"
+
+    class Config(ComponentConfig):
+        outlier_ratio: float = Field(0.2, gt=0, lt=1, description="prior outlier probability w0")
+        max_iterations: int = Field(20, gt=0, description="EM iterations per fit")
+        max_switches: int = Field(2, ge=0, description="S-steps (candidate switches) per fit")
+        m_step_evaluations: int = Field(8, gt=0, description="least-squares evaluations per M")
+        taper: bool = Field(True, description="fit the tapering of eq. 2")
+        on_table: bool = Field(True, description="yaw-only rotation, base on the table z = 0")
+        table_clearance_m: float = Field(0.008, ge=0, description="drop points below this z")
+        min_points: int = Field(50, ge=10, description="fewer points above the table: error")
+        min_noise_m: float = Field(5e-4, gt=0, description="floor of the noise estimate")
+        max_fit_points: int = Field(1000, ge=10, description="EM runs on a subset this big")
+        max_links: int = Field(1, ge=1, description="superquadrics to fit at most (III-B3)")
+        outlier_threshold_points: int = Field(
+            100, ge=1, description="O_th: stop adding links below this many unexplained points")
+        cluster_radius_m: float = Field(0.01, gt=0, description="DBSCAN radius for outliers")
+
+    def __init__(self, config: Config, ctx: ComponentContext) -> None:
+        super().__init__(config, ctx)
+        self.config: EMSEstimator.Config = config
+        self.options = EMSOptions(
+            outlier_ratio=config.outlier_ratio, max_iterations=config.max_iterations,
+            max_switches=config.max_switches, m_step_evaluations=config.m_step_evaluations,
+            min_noise_m=config.min_noise_m, taper=config.taper, on_table=config.on_table,
+            max_fit_points=config.max_fit_points,
+        )
+
+    def fit(self, cloud: PointCloud) -> ShapeEstimate:
+        """Fit the object in ``cloud`` (world frame, table at z = 0 may be included)."""
+        points = self._object_points(cloud)
+        links = fit_links(points, self.options, self.config.max_links,
+                          self.config.outlier_threshold_points, self.config.cluster_radius_m)
+        inlier = np.max([link.inlier_probability for link in links], axis=0) >= 0.5
+        logger.info("EMS: %d link(s) from %d points, %d inliers", len(links), len(points),
+                    int(inlier.sum()))
+        return ShapeEstimate(
+            links=tuple(link.superquadric for link in links),
+            initial_poses=np.array([link.params[[_X, _Y, _YAW]] for link in links]),
+            uncertainty=np.array([link.std for link in links]),
+            cloud=PointCloud(points[inlier]),
+        )
+
+    def _object_points(self, cloud: PointCloud) -> FloatArray:
+        """The finite points above the table clearance: [N, 3]; DataError when too few."""
+        points = np.asarray(cloud.points_m, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+            raise DataError(f"shape.ems: the point cloud is empty (shape {points.shape}); "
+                            "check the camera and the segmentation")
+        if not np.all(np.isfinite(points)):
+            raise DataError("shape.ems: the point cloud contains NaN or inf points; drop "
+                            "invalid depth pixels before fitting")
+        clearance = self.config.table_clearance_m
+        above = points[points[:, 2] > clearance] if self.config.on_table else points
+        if len(above) < self.config.min_points:
+            raise DataError(
+                f"shape.ems: only {len(above)} of {len(points)} points lie above the table "
+                f"(z > {clearance} m), fewer than min_points = {self.config.min_points}; "
+                "is the object in view? Move the camera closer, add views, or lower "
+                "min_points / table_clearance_m")
+        return above

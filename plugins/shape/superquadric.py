@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
-
 from vistac.types import FloatArray, Superquadric
 
 _TINY_M = 1e-12
@@ -52,7 +51,9 @@ def remove_taper(points: FloatArray, scale_m: FloatArray, taper: FloatArray) -> 
     return np.concatenate([points[..., :1] / factor[..., None], points[..., 1:]], axis=-1)
 
 
-def log_inside_outside(points: FloatArray, scale_m: FloatArray, exponents: FloatArray) -> FloatArray:
+def log_inside_outside(
+    points: FloatArray, scale_m: FloatArray, exponents: FloatArray
+) -> FloatArray:
     """log F of eq. 1 for untapered superquadric-frame points [..., N, 3]. Returns [..., N].
 
     Computed in log space so that small exponents (box-like shapes) cannot overflow.
@@ -160,3 +161,25 @@ def chamfer_distance_m(points_a: FloatArray, points_b: FloatArray) -> float:
     a_to_b, _ = cKDTree(points_b).query(points_a)
     b_to_a, _ = cKDTree(points_a).query(points_b)
     return 0.5 * (float(np.mean(a_to_b)) + float(np.mean(b_to_a)))
+
+
+def surface_area_m2(scale_m: FloatArray, exponents: FloatArray, taper: FloatArray) -> FloatArray:
+    """Approximate surface area [...] of superquadrics (scale [..., 3], exponents [..., 2]).
+
+    Bilinear interpolation in (eps1, eps2) between the exact areas of the four corner shapes
+    (eps in {0, 2}: box, diamond prism, rectangular bipyramid, octahedron), as in Liu et al.;
+    the taper widens x by its mean factor 1 + kappa2 / 3 along y.
+    """
+    a1 = scale_m[..., 0] * (1.0 + taper[..., 1] / 3.0)
+    a2, a3 = scale_m[..., 1], scale_m[..., 2]
+    box = 8.0 * (a1 * a2 + a2 * a3 + a1 * a3)
+    diamond_prism = 8.0 * np.hypot(a1, a2) * a3 + 4.0 * a1 * a2
+    bipyramid = 4.0 * (a1 * np.hypot(a2, a3) + a2 * np.hypot(a1, a3))
+    side_xy, side_yz, side_xz = np.hypot(a1, a2), np.hypot(a2, a3), np.hypot(a1, a3)
+    half_perimeter = 0.5 * (side_xy + side_yz + side_xz)
+    octahedron = 8.0 * np.sqrt(np.maximum(half_perimeter * (half_perimeter - side_xy)
+                                          * (half_perimeter - side_yz)
+                                          * (half_perimeter - side_xz), 0.0))
+    w1, w2 = 0.5 * exponents[..., 0], 0.5 * exponents[..., 1]
+    return ((1 - w1) * ((1 - w2) * box + w2 * diamond_prism)
+            + w1 * ((1 - w2) * bipyramid + w2 * octahedron))

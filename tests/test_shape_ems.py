@@ -1,0 +1,242 @@
+"""EMS superquadric fitting (``shape.ems``) against clouds sampled from known superquadrics."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from vistac.errors import DataError
+from vistac.plugins.shape.ems import PARAMETER_NAMES, EMSEstimator
+from vistac.plugins.shape.superquadric import (
+    chamfer_distance_m,
+    distance_to_surface_m,
+    inside_outside,
+    sample_surface,
+    to_superquadric_frame,
+)
+from vistac.types import PointCloud, ShapeEstimate, Superquadric
+
+NOISE_M = 0.002
+OUTLIER_FRACTION = 0.2
+SCALE_TOL_M = 0.005
+YAW_TOL_RAD = np.radians(5.0)
+CHAMFER_TOL_M = 0.003
+VIEW_DIRECTION = np.array([np.cos(0.4), np.sin(0.4), 1.0]) / np.sqrt(2.0)
+
+
+class _Context:
+    """The little of a component context that ``shape.ems`` uses (nothing)."""
+
+    skill_dir = None
+    seed = 0
+
+
+def make_estimator(**options: object) -> EMSEstimator:
+    return EMSEstimator(EMSEstimator.Config.model_validate(options), _Context())  # type: ignore[arg-type]
+
+
+def upright(scale_m: list[float], exponents: list[float], xy_m: list[float], yaw_rad: float,
+            taper: list[float] | None = None) -> Superquadric:
+    """A superquadric standing on the table (z = 0) at (x, y) turned by yaw."""
+    pose = np.eye(4)
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    pose[:2, :2] = [[c, -s], [s, c]]
+    pose[:3, 3] = [xy_m[0], xy_m[1], scale_m[2]]
+    return Superquadric(np.array(scale_m), np.array(exponents, dtype=float), pose,
+                        np.array(taper or [0.0, 0.0]))
+
+
+def yaw_of(sq: Superquadric) -> float:
+    return float(np.arctan2(sq.world_from_sq[1, 0], sq.world_from_sq[0, 0]))
+
+
+def visible(sq: Superquadric, points_m: np.ndarray) -> np.ndarray:
+    """Mask [N] of surface points whose outward normal faces VIEW_DIRECTION."""
+    local = to_superquadric_frame(sq, points_m)
+    step = 1e-5
+    gradient = np.stack([
+        inside_outside(local + step * axis, sq.scale_m, sq.exponents, sq.taper)
+        - inside_outside(local - step * axis, sq.scale_m, sq.exponents, sq.taper)
+        for axis in np.eye(3)
+    ], axis=-1)
+    return gradient @ sq.world_from_sq[:3, :3].T @ VIEW_DIRECTION > 0
+
+
+def noisy_cloud(sq: Superquadric, rng: np.random.Generator, count: int = 2000,
+                half: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Noisy surface points with uniform outliers: (points [count, 3], outlier mask [count])."""
+    surface = sample_surface(sq, 6 * count, rng)
+    keep = surface[:, 2] > 0.01
+    if half:
+        keep &= visible(sq, surface)
+    surface = surface[keep]
+    points = surface[rng.choice(len(surface), count, replace=False)]
+    points += rng.normal(0.0, NOISE_M, points.shape)
+    outlier = np.zeros(count, dtype=bool)
+    outlier[: int(OUTLIER_FRACTION * count)] = True
+    low, high = points.min(axis=0) - 0.03, points.max(axis=0) + 0.03
+    low[2] = 0.01
+    points[outlier] = rng.uniform(low, high, (int(outlier.sum()), 3))
+    return points, outlier
+
+
+def random_sq(rng: np.random.Generator, exponents: list[float],
+              taper: list[float] | None = None) -> Superquadric:
+    """Random upright superquadric with a1 at least 15 mm shorter than a2 (yaw well defined)."""
+    a1 = rng.uniform(0.03, 0.045)
+    scale = [a1, a1 + rng.uniform(0.015, 0.035), rng.uniform(0.02, 0.03)]
+    return upright(scale, exponents, [rng.uniform(-0.1, 0.1), rng.uniform(0.35, 0.5)],
+                   rng.uniform(-np.pi, np.pi), taper)
+
+
+def angle_error(a_rad: float, b_rad: float, period_rad: float) -> float:
+    diff = (a_rad - b_rad) % period_rad
+    return min(diff, period_rad - diff)
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    exponents: list[float]
+    taper: list[float] | None = None
+    half: bool = False
+
+
+CASES = [
+    Case("box", [0.1, 0.1]),
+    Case("ellipsoid", [1.0, 1.0]),
+    Case("rounded_box", [0.4, 0.3]),
+    Case("tapered", [0.2, 0.3], [0.4, 0.2]),
+    Case("box_half_view", [0.1, 0.1], half=True),
+    Case("ellipsoid_half_view", [1.0, 1.0], half=True),
+    Case("tapered_half_view", [0.2, 0.3], [0.4, 0.0], half=True),
+]
+KNOWN_FAILURES = {
+    "box_half_view": "half-seen box: Chamfer 4.3 mm > 3 mm (the box grows into the unseen side)",
+}
+
+
+def _params(cases: list[Case]) -> list[object]:
+    return [pytest.param(case, id=case.name, marks=pytest.mark.xfail(
+        reason=KNOWN_FAILURES[case.name], strict=False)) if case.name in KNOWN_FAILURES
+        else pytest.param(case, id=case.name) for case in cases]
+
+
+def _compare_parameters(truth: Superquadric, fitted: Superquadric, tapered: bool) -> None:
+    scale, yaw = fitted.scale_m.copy(), yaw_of(fitted)
+    if not tapered and scale[0] > scale[1]:  # the same untapered shape, axes renamed
+        scale[[0, 1]], yaw = scale[[1, 0]], yaw + np.pi / 2
+    np.testing.assert_allclose(scale, truth.scale_m, atol=SCALE_TOL_M)
+    period = 2 * np.pi if tapered else np.pi
+    assert angle_error(yaw, yaw_of(truth), period) < YAW_TOL_RAD
+    np.testing.assert_allclose(fitted.world_from_sq[:2, 3], truth.world_from_sq[:2, 3],
+                               atol=SCALE_TOL_M)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("case", _params(CASES))
+def test_recovers_random_superquadric(case: Case, seed: int) -> None:
+    rng = np.random.default_rng([seed, len(case.name)])
+    truth = random_sq(rng, case.exponents, case.taper)
+    points, _ = noisy_cloud(truth, rng, half=case.half)
+    estimate = make_estimator(taper=case.taper is not None).fit(PointCloud(points))
+    fitted = estimate.links[0]
+    chamfer = chamfer_distance_m(sample_surface(truth, 20000, rng),
+                                 sample_surface(fitted, 20000, rng))
+    assert chamfer < CHAMFER_TOL_M
+    if not (case.half and case.taper):  # half a tapered shape: only the surface is asserted
+        _compare_parameters(truth, fitted, case.taper is not None)
+
+
+def test_estimate_layout_and_inlier_cloud() -> None:
+    rng = np.random.default_rng(7)
+    truth = upright([0.04, 0.06, 0.025], [0.1, 0.1], [0.05, 0.4], 0.3)
+    points, outlier = noisy_cloud(truth, rng)
+    table = np.column_stack([rng.uniform(-0.1, 0.2, (500, 2)), rng.normal(0, 0.001, 500)])
+    estimate = make_estimator(taper=False).fit(PointCloud(np.vstack([points, table])))
+    assert isinstance(estimate, ShapeEstimate)
+    assert estimate.initial_poses.shape == (1, 3)
+    assert estimate.uncertainty.shape == (1, len(PARAMETER_NAMES))
+    std = dict(zip(PARAMETER_NAMES, estimate.uncertainty[0], strict=True))
+    assert std["pitch_rad"] == std["roll_rad"] == std["kappa1"] == 0.0
+    assert 0.0 < std["a1_m"] < 0.002 and 0.0 < std["yaw_rad"] < np.radians(2)
+    # The returned cloud is the object's inliers: no table points, most outliers gone.
+    kept = estimate.cloud.points_m
+    assert kept[:, 2].min() > 0.008
+    assert len(kept) < len(points) and len(kept) > 0.75 * (~outlier).sum()
+    assert np.mean(distance_to_surface_m(truth, kept) < 4 * NOISE_M) > 0.97
+
+
+def test_inlier_probability_separates_outliers() -> None:
+    from vistac.plugins.shape.ems import EMSOptions, fit_superquadric
+
+    rng = np.random.default_rng(3)
+    truth = upright([0.035, 0.055, 0.03], [0.5, 0.5], [0.0, 0.4], -0.7)
+    points, outlier = noisy_cloud(truth, rng)
+    far = outlier & (distance_to_surface_m(truth, points) > 4 * NOISE_M)
+    result = fit_superquadric(points, EMSOptions(taper=False))
+    assert result.inlier_probability[~outlier].mean() > 0.9
+    assert result.inlier_probability[far].mean() < 0.05
+    assert NOISE_M / 2 < result.noise_m < 2 * NOISE_M
+
+
+@pytest.mark.xfail(strict=True, reason="multi-link recovery: the first fit spans both boxes "
+                   "and the refits do not separate them yet")
+def test_two_touching_boxes_are_two_links() -> None:
+    rng = np.random.default_rng(11)
+    low_box = upright([0.045, 0.045, 0.02], [0.1, 0.1], [0.0, 0.4], 0.0)
+    tall_box = upright([0.03, 0.045, 0.035], [0.1, 0.1], [0.075, 0.4], 0.0)
+    points = np.vstack([noisy_cloud(sq, rng, 1200)[0] for sq in (low_box, tall_box)])
+    # The shared face (x = 0.045 m, below the low box's top) is inside the object: unseen.
+    points = points[(np.abs(points[:, 0] - 0.045) > 0.004) | (points[:, 2] > 0.04)]
+    estimate = make_estimator(taper=False, max_links=3, outlier_threshold_points=150).fit(
+        PointCloud(points))
+    assert len(estimate.links) == 2
+    poses = estimate.initial_poses[np.argsort(estimate.initial_poses[:, 0])]
+    np.testing.assert_allclose(poses[:, :2], [[0.0, 0.4], [0.075, 0.4]], atol=0.006)
+
+
+def _cloud_with_nan() -> PointCloud:
+    cloud = PointCloud(np.full((100, 3), 0.05))
+    object.__setattr__(cloud, "points_m", np.full((100, 3), np.nan))
+    return cloud
+
+
+@pytest.mark.parametrize(
+    ("cloud", "message"),
+    [
+        (PointCloud(np.zeros((0, 3))), "point cloud is empty"),
+        (_cloud_with_nan(), "NaN or inf"),
+        (PointCloud(np.column_stack([np.random.default_rng(0).uniform(0, 0.2, (400, 2)),
+                                     np.zeros(400)])), "only 0 of 400 points lie above"),
+        (PointCloud(np.full((20, 3), 0.05)), "fewer than min_points = 50"),
+    ],
+    ids=["empty", "nan", "all_table", "too_few"],
+)
+def test_bad_input_is_a_data_error(cloud: PointCloud, message: str) -> None:
+    with pytest.raises(DataError, match=message):
+        make_estimator().fit(cloud)
+
+
+def test_sampled_surface_points_lie_on_the_surface() -> None:
+    rng = np.random.default_rng(0)
+    sq = upright([0.04, 0.07, 0.03], [0.3, 0.6], [0.1, 0.3], 1.0, [0.5, 0.3])
+    points = sample_surface(sq, 3000, rng)
+    assert np.median(np.abs(inside_outside(to_superquadric_frame(sq, points), sq.scale_m,
+                                           sq.exponents, sq.taper) - 1)) < 0.01
+    assert np.percentile(distance_to_surface_m(sq, points), 99) < 5e-4
+
+
+def test_surface_samples_are_spread_by_area() -> None:
+    box = upright([0.04, 0.07, 0.03], [0.1, 0.1], [0.0, 0.0], 0.0)
+    points = sample_surface(box, 20000, np.random.default_rng(1))
+    top_share = 0.08 * 0.14 / (2 * (0.08 * 0.14 + 0.08 * 0.06 + 0.14 * 0.06))
+    assert np.mean(points[:, 2] > 0.0595) == pytest.approx(top_share, rel=0.1)
+
+
+def test_chamfer_distance_of_shifted_copy() -> None:
+    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    assert chamfer_distance_m(points, points) == 0.0
+    shifted = points + np.array([0.0, 0.0, 0.002])
+    assert chamfer_distance_m(points, shifted) == pytest.approx(0.002)
