@@ -117,6 +117,19 @@ class NeedsWidget(SkillBehaviour):
         return Status.SUCCESS
 
 
+def measurement_episode(index: int, values: np.ndarray) -> Episode:
+    """An episode at 15 Hz whose arm x positions are ``values`` (the toy filter's data)."""
+    steps = [
+        StepObservation(
+            i / 15,
+            TactileReading(np.zeros((2, 2)), i / 15),
+            ArmState(np.array([v, 0, 0, 0]), np.zeros(4), i / 15),
+        )
+        for i, v in enumerate(values)
+    ]
+    return Episode(index, Push(np.zeros(2), 0.0, 0.02), steps)
+
+
 class FakeInteraction(SkillBehaviour):
     """Writes an episode of 15 noisy measurements of ``value`` (as arm x), initialising the
     belief from the filter the first time, like choose_action + execute_action."""
@@ -133,15 +146,7 @@ class FakeInteraction(SkillBehaviour):
             self.write("belief", self.run.component("filter").initialise(None))
         rng = self.run.rng(f"fake/{self.run.episode_count}")
         values = self.config.value + rng.normal(0, self.config.noise_std, 15)
-        steps = [
-            StepObservation(
-                i / 15,
-                TactileReading(np.zeros((2, 2)), i / 15),
-                ArmState(np.array([v, 0, 0, 0]), np.zeros(4), i / 15),
-            )
-            for i, v in enumerate(values)
-        ]
-        self.write("episode", Episode(self.run.episode_count, Push(np.zeros(2), 0.0, 0.02), steps))
+        self.write("episode", measurement_episode(self.run.episode_count, values))
         self.run.episode_count += 1
         return Status.SUCCESS
 

@@ -11,10 +11,8 @@ import pytest
 from conftest import write
 from vistac.errors import ConfigError
 from vistac.pluginmanager import Plugins
-from vistac.protocols import Episode, StepObservation
 from vistac.scheduler import Scheduler
 from vistac.skill import load_skill
-from vistac.types import ArmState, Push, TactileReading
 
 
 def _run(
@@ -91,18 +89,6 @@ def test_existing_run_is_not_overwritten(tmp_path: Path, plugins: Plugins) -> No
     Scheduler(load_skill(path, plugins.registry), plugins, tmp_path / "out", overwrite=True)
 
 
-def _episode(xs: np.ndarray) -> Episode:
-    steps = [
-        StepObservation(
-            i / 15,
-            TactileReading(np.zeros((2, 2)), i / 15),
-            ArmState(np.array([x, 0, 0, 0]), np.zeros(4), i / 15),
-        )
-        for i, x in enumerate(xs)
-    ]
-    return Episode(0, Push(np.zeros(2), 0.0, 0.02), steps)
-
-
 def test_belief_nodes_with_a_known_filter(tmp_path: Path, plugins: Plugins) -> None:
     from vistac.behaviours.belief import BeliefConverged
     from vistac.testing import build_components
@@ -116,7 +102,7 @@ def test_belief_nodes_with_a_known_filter(tmp_path: Path, plugins: Plugins) -> N
     kalman.initialise(None)
     rng = np.random.default_rng(0)
     measurements = 0.7 + rng.normal(0, 0.2, 50)
-    belief = kalman.update(_episode(measurements))
+    belief = kalman.update(fixtures_plugin.measurement_episode(0, measurements))
     # A constant observed with noise: the posterior is the precision-weighted mean.
     precision = 1 / 1.0 + 50 / 0.04
     assert belief.cov[0, 0] == pytest.approx(1 / precision)
