@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import mujoco
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
+from vistac.errors import ConfigError
 from vistac.objects import ObjectSpec, load_object
 from vistac.plugins.hardware.sim.mjcf import (
     ARM_JOINTS,
@@ -78,6 +80,16 @@ class MujocoWorld(Component):
         gripper_start: tuple[float, float, float, float] = (0.0, 0.25, 0.12, 0.0)
         """Initial TCP pose (x_m, y_m, z_m, yaw_rad)."""
         gripper_max_opening_m: float = Field(default=0.15, gt=0.02, le=0.3)
+
+        @field_validator("object")
+        @classmethod
+        def _object_file_is_valid(cls, path: Path) -> Path:
+            """Check the object file before anything is built (errors name the file)."""
+            try:
+                load_object(path)
+            except ConfigError as exc:
+                raise ValueError(str(exc).replace("\n", "; ")) from None
+            return path
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
         super().__init__(config, ctx)
