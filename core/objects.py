@@ -152,6 +152,70 @@ def points_inside(polygon: FloatArray, points: FloatArray) -> NDArray[np.bool_]:
     return np.asarray(np.all(cross > 0.0, axis=1))
 
 
+def prism_surface_points(
+    polygon: FloatArray, height_m: float, count: int, rng: np.random.Generator
+) -> FloatArray:
+    """Points sampled uniformly by area on the closed surface of the prism that extrudes
+    ``polygon`` [K, 2] (convex, CCW) from z = 0 to ``height_m``.
+
+    Returns: [count, 3] in the link frame (m).
+    """
+    edges = np.roll(polygon, -1, axis=0) - polygon
+    side_areas = np.linalg.norm(edges, axis=1) * height_m
+    cap_area = polygon_area(polygon)
+    # Triangle fan of the convex polygon for the caps.
+    fan_a, fan_b = polygon[1:-1] - polygon[0], polygon[2:] - polygon[0]
+    fan_areas = 0.5 * np.abs(fan_a[:, 0] * fan_b[:, 1] - fan_a[:, 1] * fan_b[:, 0])
+    areas = np.concatenate([side_areas, [cap_area, cap_area]])
+    which = rng.choice(len(areas), size=count, p=areas / areas.sum())
+    points = np.empty((count, 3))
+    side = which < len(edges)
+    t, z = rng.random(side.sum()), rng.random(side.sum()) * height_m
+    points[side, :2] = polygon[which[side]] + t[:, None] * edges[which[side]]
+    points[side, 2] = z
+    cap = ~side
+    triangle = rng.choice(len(fan_areas), size=cap.sum(), p=fan_areas / fan_areas.sum())
+    u, v = rng.random(cap.sum()), rng.random(cap.sum())
+    flip = u + v > 1.0
+    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+    points[cap, :2] = polygon[0] + u[:, None] * fan_a[triangle] + v[:, None] * fan_b[triangle]
+    points[cap, 2] = np.where(which[cap] == len(edges), 0.0, height_m)
+    return points
+
+
+def prism_distance_m(points_m: FloatArray, polygon: FloatArray, height_m: float) -> FloatArray:
+    """Exact unsigned distance [N] from points [N, 3] (link frame) to the surface of the prism
+    that extrudes the convex CCW ``polygon`` [K, 2] from z = 0 to ``height_m``."""
+    start, edge = polygon, np.roll(polygon, -1, axis=0) - polygon
+    rel = points_m[:, None, :2] - start[None]
+    t = np.clip((rel * edge).sum(-1) / (edge * edge).sum(-1), 0.0, 1.0)
+    to_edge_m = np.linalg.norm(rel - t[..., None] * edge, axis=-1).min(axis=1)
+    inside = points_inside(polygon, points_m[:, :2])
+    z = points_m[:, 2]
+    beyond_z_m = np.maximum(np.maximum(-z, z - height_m), 0.0)
+    inner_m = np.minimum(to_edge_m, np.minimum(z, height_m - z))
+    outside_m = np.hypot(np.where(inside, 0.0, to_edge_m), beyond_z_m)
+    return np.asarray(np.where(inside & (beyond_z_m == 0.0), inner_m, outside_m))
+
+
+def to_link_frame(points_m: FloatArray, pose: FloatArray) -> FloatArray:
+    """World points [N, 3] -> link frame, for a planar link pose [3] = (x, y, theta)."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    dx, dy = points_m[:, 0] - pose[0], points_m[:, 1] - pose[1]
+    local = points_m.copy()
+    local[:, 0], local[:, 1] = c * dx + s * dy, -s * dx + c * dy
+    return local
+
+
+def to_world_xy(points: FloatArray, pose: FloatArray) -> FloatArray:
+    """Points [N, 3] in a link frame -> world frame, for a planar pose [3] = (x, y, theta)."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    world = points.copy()
+    world[:, 0] = pose[0] + c * points[:, 0] - s * points[:, 1]
+    world[:, 1] = pose[1] + s * points[:, 0] + c * points[:, 1]
+    return world
+
+
 # ---------------------------------------------------------------------------------------------
 # Specs
 
@@ -273,6 +337,17 @@ def link_frames(spec: ObjectSpec) -> FloatArray:
         xy = np.array([x0, y0]) + rotation @ offset
         poses.append(np.array([xy[0], xy[1], theta]))
     return np.stack(poses)
+
+
+def link_surface_points(
+    spec: ObjectSpec, link_poses: FloatArray, count: int, rng: np.random.Generator
+) -> list[FloatArray]:
+    """The true surface of each link at world poses ``link_poses`` [L, 3]: one [count, 3]
+    array of world points (m) per link."""
+    return [
+        to_world_xy(prism_surface_points(link.polygon(), link.height_m, count, rng), pose)
+        for link, pose in zip(spec.links, link_poses, strict=True)
+    ]
 
 
 # ---------------------------------------------------------------------------------------------

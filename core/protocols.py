@@ -31,6 +31,7 @@ KINDS: tuple[str, ...] = (
     "gripper",
     "camera",
     "tactile",
+    "cloud_processor",
     "shape_estimator",
     "view_planner",
     "filter",
@@ -141,6 +142,19 @@ class ViewPlanner(Protocol):
 
 
 @runtime_checkable
+class CloudProcessor(Protocol):
+    """Registers views onto each other and segments the object from a world-frame cloud."""
+
+    def register(self, view: PointCloud, previous: PointCloud | None) -> PointCloud:
+        """``view`` aligned onto the merged ``previous`` views (unchanged when it cannot be)."""
+        ...
+
+    def segment(self, cloud: PointCloud) -> PointCloud:
+        """The object's points only (table and clutter removed)."""
+        ...
+
+
+@runtime_checkable
 class ShapeEstimator(Protocol):
     """Fits the object's shape (one part per link) to a segmented or raw cloud."""
 
@@ -177,15 +191,15 @@ class ActionSelector(Protocol):
 class StepObservation:
     """One control step's observation during an interaction.
 
-    tactile: fingertip forces; arm: TCP state; depth_m: [h, w] depth image or None;
-    ground_truth: link poses [L, 3] = (x, y, theta) when the world knows them (never read by
-    estimators).
+    tactile: fingertip forces; arm: TCP state; depth: the depth frame (an [h, w] image with
+    its intrinsics and camera pose) or None; ground_truth_poses: link poses [L, 3] = (x, y,
+    theta) when the world knows them (never read by estimators).
     """
 
     time_s: float
     tactile: TactileReading
     arm: ArmState
-    depth_m: FloatArray | None = None
+    depth: RGBD | None = None
     ground_truth_poses: FloatArray | None = None
 
 
@@ -224,18 +238,30 @@ class Filter(Protocol):
 
 @runtime_checkable
 class ProcessModel(Protocol):
-    """(states [C, n], action) -> (next states [C, n], process noise covariance [n, n])."""
+    """Predicts the next time-varying state of C sigma points (torch, float64).
 
-    def predict(
-        self, states: FloatArray, action: Action, dt_s: float
-    ) -> tuple[FloatArray, FloatArray]: ...
+    ``predict(states [..., C, n], inputs: ProcessInput, dt_s) -> Prediction`` with
+    ``Prediction.pose [..., C, 6 L]``, ``force_n [..., C, 2]`` and ``process_var``; see
+    ``vistac.plugins.filters.state`` for the state layout. ``n_links`` is the number of links
+    the model supports, or None for any number (the GNN).
+    """
+
+    n_links: int | None
+
+    def predict(self, states: Any, inputs: Any, dt_s: float) -> Any: ...
 
 
 @runtime_checkable
 class ObservationModel(Protocol):
-    """Expected observation per sigma point: states [C, n] -> observations [C, k]."""
+    """Expected observation per sigma point and the observation noise.
 
-    def expected(self, states: FloatArray) -> FloatArray: ...
+    ``expected(states [..., C, n], prediction) -> [..., C, k]`` and
+    ``noise_var(observation [..., k]) -> [..., k]`` (diagonal R), torch float64.
+    """
+
+    def expected(self, states: Any, prediction: Any) -> Any: ...
+
+    def noise_var(self, observation: Any) -> Any: ...
 
 
 @runtime_checkable
@@ -284,6 +310,7 @@ PROTOCOLS: dict[str, type] = {
     "camera": Camera,
     "tactile": Tactile,
     "view_planner": ViewPlanner,
+    "cloud_processor": CloudProcessor,
     "shape_estimator": ShapeEstimator,
     "action_sampler": ActionSampler,
     "action_selector": ActionSelector,

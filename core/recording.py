@@ -66,7 +66,9 @@ def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
 
 def episode_arrays(episode: Episode) -> dict[str, np.ndarray]:
     """Stack an episode's steps into arrays: time_s [T], tactile_force_n [T, P, 2],
-    arm_pose [T, 4], arm_twist [T, 4], depth_m [T, h, w] and object_pose [T, L, 3] when present."""
+    arm_pose [T, 4], arm_twist [T, 4], and when present depth_m [T, h, w] with camera_pose
+    [T, 4, 4] (world from optical frame) and depth_intrinsics [T, 4] = (fx, fy, cx, cy) px,
+    and object_pose [T, L, 3]."""
     steps = episode.steps
     arrays: dict[str, np.ndarray] = {
         "time_s": np.array([s.time_s for s in steps]),
@@ -75,8 +77,17 @@ def episode_arrays(episode: Episode) -> dict[str, np.ndarray]:
         "arm_pose": np.array([s.arm.pose for s in steps]).reshape(len(steps), 4),
         "arm_twist": np.array([s.arm.twist for s in steps]).reshape(len(steps), 4),
     }
-    if steps and all(s.depth_m is not None for s in steps):
-        arrays["depth_m"] = np.stack([s.depth_m for s in steps]).astype(np.float32)
+    frames = [s.depth for s in steps]
+    if steps and all(frame is not None for frame in frames):
+        arrays["depth_m"] = np.stack([f.depth_m for f in frames if f]).astype(np.float32)
+        arrays["camera_pose"] = np.stack([f.world_from_camera for f in frames if f])
+        arrays["depth_intrinsics"] = np.array(
+            [
+                [f.intrinsics.fx, f.intrinsics.fy, f.intrinsics.cx, f.intrinsics.cy]
+                for f in frames
+                if f
+            ]
+        )
     if steps and all(s.ground_truth_poses is not None for s in steps):
         arrays["object_pose"] = np.stack([s.ground_truth_poses for s in steps])
     return arrays
@@ -138,6 +149,8 @@ class RunRecorder:
                 "tactile_force_n": "N (world x, y per pad)",
                 "arm_pose": "x, y, z m, yaw rad",
                 "depth_m": "m (NaN: no return)",
+                "camera_pose": "world from camera optical frame (x right, y down, z forward)",
+                "depth_intrinsics": "fx, fy, cx, cy in pixels of depth_m",
                 "object_pose": "x, y m, theta rad per link (ground truth)",
             },
             "ground_truth": ground_truth,

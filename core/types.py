@@ -298,7 +298,8 @@ class Superquadric:
     """A (tapered) superquadric in its own frame, placed by ``world_from_sq`` [4, 4].
 
     scale_m: [3] semi-axes a1..a3; exponents: [2] = (eps1, eps2); taper: [2] = (kappa1,
-    kappa2), zero for none.
+    kappa2) or [3] = (kappa1, kappa2, shear): the tapering of paper 1 eq. 2 and a shear
+    x += shear * y after it (an extension that fits right triangles); zeros for none.
     """
 
     scale_m: FloatArray

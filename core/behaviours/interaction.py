@@ -116,7 +116,7 @@ class ExecuteAction(SkillBehaviour):
         camera = self.component("camera")
         depth = None
         if camera is not None and self.config.record_depth:
-            depth = camera.capture(self.config.depth_width, self.config.depth_height).depth_m
+            depth = camera.capture(self.config.depth_width, self.config.depth_height)
         world = self.run.world_if_built()
         poses = world.ground_truth_poses() if world is not None else None
         step = StepObservation(self.run.time_s, tactile, arm_state, depth, poses)

@@ -3,30 +3,42 @@
 from __future__ import annotations
 
 import logging
+import time
+from dataclasses import asdict
+from typing import Any
 
+import numpy as np
 from py_trees.common import Status
 from pydantic import Field
 from vistac.component import ComponentConfig
 from vistac.errors import DataError
 from vistac.tree import SkillBehaviour
-from vistac.types import PointCloud
+from vistac.types import PointCloud, ShapeEstimate, Viewpoint
 
 log = logging.getLogger(__name__)
 
 
 class Look(SkillBehaviour):
-    """One view per tick: ask the planner for a viewpoint, move the camera there, capture and
-    merge the cloud; with a shape estimator, refit after each view. Writes ``cloud`` (the
-    merged world-frame cloud, table included), ``views`` (count) and ``shape``."""
+    """One view per tick: ask the planner for a viewpoint, move the camera there, capture,
+    register the view onto the previous ones and (with a cloud processor) segment the object;
+    with a shape estimator, refit after each view. Writes ``cloud`` (the merged world-frame
+    cloud, table included), ``views`` (count) and ``shape``; the run summary gets ``shape``
+    (per link the fitted superquadric and its parameter std, the views and the time spent)."""
 
     writes = ("cloud", "views", "shape")
-    role_fields = {"camera": "camera", "views": "view_planner", "shape": "shape_estimator"}
-    optional_roles = ("shape",)
+    role_fields = {
+        "camera": "camera",
+        "views": "view_planner",
+        "shape": "shape_estimator",
+        "processor": "cloud_processor",
+    }
+    optional_roles = ("shape", "processor")
 
     class Config(ComponentConfig):
         camera: str = "camera"
         views: str = "views"
         shape: str = "shape"
+        processor: str = "cloud"
         max_views: int = Field(8, gt=0, description="hard limit on the number of views")
 
     @classmethod
@@ -36,37 +48,74 @@ class Look(SkillBehaviour):
 
     def initialise(self) -> None:
         self.clouds: list[PointCloud] = []
-        self.shape_estimate = None
+        self.object_cloud: PointCloud | None = None
+        self.shape_estimate: ShapeEstimate | None = None
+        self.busy_s = 0.0
 
     def update(self) -> Status:
-        camera, planner = self.component("camera"), self.component("views")
-        merged = PointCloud.merge(self.clouds) if self.clouds else None
+        start_s = time.perf_counter()
         view = None
         if len(self.clouds) < self.config.max_views:
-            view = planner.next_view(merged, self.shape_estimate, len(self.clouds))
+            view = self.component("views").next_view(
+                self.object_cloud, self.shape_estimate, len(self.clouds)
+            )
         if view is None:
-            return self._finish(merged)
+            self.busy_s += time.perf_counter() - start_s
+            return self._finish()
+        self._take_view(view)
+        estimator = self.component("shape")
+        if estimator is not None and self.object_cloud is not None:
+            self.shape_estimate = estimator.fit(self.object_cloud)
+        self.busy_s += time.perf_counter() - start_s
+        return Status.RUNNING
+
+    def _take_view(self, view: Viewpoint) -> None:
+        camera, processor = self.component("camera"), self.component("processor")
         if camera.movable:
             camera.move_to(view)
         rgbd = camera.capture()
-        cloud = rgbd.point_cloud()
         self.run.recorder.save_view(rgbd)
+        cloud = rgbd.point_cloud()
+        merged = PointCloud.merge(self.clouds) if self.clouds else None
+        if processor is not None:
+            cloud = processor.register(cloud, merged)
         self.clouds.append(cloud)
+        merged = PointCloud.merge(self.clouds)
+        self.object_cloud = processor.segment(merged) if processor is not None else merged
         log.info(
             "view %d: %d points from (%.2f, %.2f, %.2f)", len(self.clouds), len(cloud), *view.eye_m
         )
-        estimator = self.component("shape")
-        if estimator is not None:
-            self.shape_estimate = estimator.fit(PointCloud.merge(self.clouds))
-        return Status.RUNNING
 
-    def _finish(self, merged: PointCloud | None) -> Status:
-        if merged is None or len(merged) == 0:
+    def _finish(self) -> Status:
+        if not self.clouds or self.object_cloud is None or len(self.object_cloud) == 0:
             raise DataError("look: the camera returned no points; check that the object is in view")
+        merged = PointCloud.merge(self.clouds)
         self.run.recorder.save_cloud(merged)
         self.write("cloud", merged)
         self.write("views", len(self.clouds))
+        self.run.results["views_taken"] = len(self.clouds)
         if self.shape_estimate is not None:
             self.write("shape", self.shape_estimate)
-        self.run.results["views_taken"] = len(self.clouds)
+            summary = shape_summary(self.shape_estimate, len(self.clouds), self.busy_s)
+            world = self.run.world_if_built()
+            truth = world.ground_truth_poses() if world is not None else None
+            if truth is not None:  # for evaluation only, never read by estimators
+                summary["true_link_poses"] = np.asarray(truth).tolist()
+            self.run.results["shape"] = summary
         return Status.SUCCESS
+
+
+def shape_summary(shape: ShapeEstimate, views: int, time_s: float) -> dict[str, Any]:
+    """JSON-ready summary of a shape estimate: per link the superquadric's fields, the
+    initial pose and the parameter std; the number of views and the time spent (s)."""
+    links = [
+        {
+            "superquadric": {
+                name: np.asarray(value).tolist() for name, value in asdict(link).items()
+            },
+            "initial_pose": pose.tolist(),
+            "std": std.tolist(),
+        }
+        for link, pose, std in zip(shape.links, shape.initial_poses, shape.uncertainty, strict=True)
+    ]
+    return {"links": links, "views": views, "time_s": time_s, "points": len(shape.cloud)}

@@ -9,9 +9,14 @@ dual, the sign-flipped and halved taper) are tried and the best replaces the cur
 (the S-step). Multi-link objects: outliers of the fitted links are clustered and fitted again
 until fewer than ``outlier_threshold_points`` remain.
 
-Parameter vector (13, ``PARAMETER_NAMES``): a1, a2, a3, eps1, eps2, kappa1, kappa2, x, y, yaw,
-z, pitch, roll; rotation ``Rz(yaw) Ry(pitch) Rx(roll)``. On a table (the default) pitch = roll
-= 0 and z = a3 (the base touches z = 0), leaving 8 parameters plus the 2 of the taper.
+Parameter vector (14, ``PARAMETER_NAMES``): a1, a2, a3, eps1, eps2, kappa1, kappa2, x, y, yaw,
+z, pitch, roll, shear; rotation ``Rz(yaw) Ry(pitch) Rx(roll)``. On a table (the default)
+pitch = roll = 0 and z = a3 (the base touches z = 0), leaving 8 parameters plus the 2 of the taper.
+
+Extensions beyond the paper: the shear ``X = f(y) x + s y`` after the taper (``shear``, in
+[-1, 1], fitted with the taper and flipped in the S-step; ``Superquadric.taper`` then holds
+(kappa1, kappa2, shear)) so that right triangles and skewed tapers are representable; analytic
+Jacobians; EM on a coarse subset, then a few iterations on ``max_fit_points``.
 """
 
 from __future__ import annotations
@@ -22,7 +27,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
-from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -31,6 +35,7 @@ from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
 from vistac.plugins.shape.superquadric import (
     distance_to_surface_m,
+    radial_distance_gradient,
     radial_distance_m,
     surface_area_m2,
 )
@@ -40,13 +45,20 @@ logger = logging.getLogger(__name__)
 
 PARAMETER_NAMES: tuple[str, ...] = (
     "a1_m", "a2_m", "a3_m", "eps1", "eps2", "kappa1", "kappa2",
-    "x_m", "y_m", "yaw_rad", "z_m", "pitch_rad", "roll_rad",
+    "x_m", "y_m", "yaw_rad", "z_m", "pitch_rad", "roll_rad", "shear",
 )  # fmt: skip
 """Order of the full parameter vector and of ``ShapeEstimate.uncertainty`` columns."""
 
-_SCALE, _EXPONENTS, _TAPER = slice(0, 3), slice(3, 5), slice(5, 7)
+_SCALE, _EXPONENTS = slice(0, 3), slice(3, 5)
 _A2, _A3, _KAPPA1, _KAPPA2, _X, _Y, _YAW, _Z, _PITCH, _ROLL = 1, 2, 5, 6, 7, 8, 9, 10, 11, 12
+_SHEAR = 13
+_TAPER = [_KAPPA1, _KAPPA2, _SHEAR]
 _TAPER_INDICES = (_KAPPA1, _KAPPA2)
+_SHAPE_INDICES = [0, 1, 2, 3, 4, _KAPPA1, _KAPPA2, _SHEAR]
+_GENERATOR_Z = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+_GENERATOR_Y = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+_GENERATOR_X = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+_SHEAR_BOUND = 1.0
 _TILT_INDICES = (_Z, _PITCH, _ROLL)
 _MIN_SCALE_M = 0.002
 _EXPONENT_BOUNDS = (0.1, 2.0)
@@ -58,6 +70,15 @@ _MIN_VOLUME_M3 = 1e-9
 _LOG_AREA_FLOOR = np.log(1e-8)
 _MIN_LINK_POINTS = 10
 _REFIT_ROUNDS = 2
+_COARSE_FIT_POINTS = 400
+_FINE_ITERATIONS = 3
+_SWITCH_TRIALS = 2
+_LM_INITIAL_DAMPING = 1e-2
+_LM_MIN_DAMPING = 1e-6
+_LM_DAMPING_FACTOR = 4.0
+_LM_MIN_SCALING = 1e-12
+_DENSITY_NEIGHBOURS = 8
+_DENSITY_KEEP_RATIO = 2.0
 _AREA_NOISE_CAP_M = 0.002
 
 IntArray = NDArray[np.int64]
@@ -70,10 +91,11 @@ class EMSOptions:
     outlier_ratio: float = 0.2
     max_iterations: int = 20
     max_switches: int = 2
-    m_step_evaluations: int = 8
+    m_step_evaluations: int = 4
     tolerance_nats: float = 1e-3
     min_noise_m: float = 5e-4
     taper: bool = True
+    shear: bool = True
     on_table: bool = True
     max_fit_points: int = 1000
 
@@ -82,7 +104,7 @@ class EMSOptions:
 class EMSResult:
     """One fitted superquadric.
 
-    params: [13] in ``PARAMETER_NAMES`` order; std: [13] standard deviations (0 where the
+    params: [14] in ``PARAMETER_NAMES`` order; std: [14] standard deviations (0 where the
     parameter is fixed by the model); inlier_probability: [N] posterior of eq. 9 per point.
     """
 
@@ -107,7 +129,7 @@ class _Problem:
     options: EMSOptions
 
     def expand(self, free_values: FloatArray, base: FloatArray) -> FloatArray:
-        """Full parameter vectors [B, 13] from free values [B, F] on top of ``base`` [13]."""
+        """Full parameter vectors [B, 14] from free values [B, F] on top of ``base`` [14]."""
         full = np.repeat(base[None, :], len(free_values), axis=0)
         full[:, self.free] = free_values
         if self.on_table:
@@ -115,17 +137,37 @@ class _Problem:
         return full
 
     def distances(self, full: FloatArray) -> FloatArray:
-        """Radial distance of every point to each superquadric: full [B, 13] -> [B, N]."""
+        """Radial distance of every point to each superquadric: full [B, 14] -> [B, N]."""
         rotation = _rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
         centre = full[:, [_X, _Y, _Z]]
         local = np.matmul(self.points_m - centre[:, None, :], rotation)
         return radial_distance_m(local, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER])
 
+    def distance_gradient(self, params: FloatArray) -> FloatArray:
+        """Gradient [N, F] of each point's radial distance to the superquadric of params [14]
+        with respect to the free parameters (on a table, a3's column includes z = a3)."""
+        rotation = _rotation_zyx(params[None, _YAW], params[None, _PITCH],
+                                 params[None, _ROLL])[0]
+        offset = self.points_m - params[[_X, _Y, _Z]]
+        _, grad = radial_distance_gradient(offset @ rotation, params[_SCALE],
+                                           params[_EXPONENTS], params[_TAPER])
+        grad_q = grad[:, :3]
+        full = np.empty((len(offset), len(PARAMETER_NAMES)))
+        full[:, _SHAPE_INDICES] = grad[:, 3:]
+        full[:, [_X, _Y, _Z]] = -grad_q @ rotation.T
+        angles = (_YAW,) if self.on_table else (_YAW, _PITCH, _ROLL)
+        for index, d_rotation in zip(angles, _rotation_derivatives(params, rotation),
+                                     strict=False):
+            full[:, index] = np.einsum("ij,ij->i", grad_q, offset @ d_rotation)
+        if self.on_table:
+            full[:, _A3] += full[:, _Z]
+        return full[:, self.free]
+
     def log_inlier_density(self, distance_m: FloatArray, noise_var_m2: float) -> FloatArray:
         return -1.5 * np.log(2 * np.pi * noise_var_m2) - distance_m**2 / (2 * noise_var_m2)
 
     def log_area(self, full: FloatArray) -> FloatArray:
-        """log of the approximate surface area of each superquadric: full [B, 13] -> [B]."""
+        """log of the approximate surface area of each superquadric: full [B, 14] -> [B]."""
         return np.log(surface_area_m2(full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER]))
 
     def posterior(self, distance_m: FloatArray, noise_var_m2: float) -> FloatArray:
@@ -135,7 +177,7 @@ class _Problem:
         return expit(self.log_inlier_density(distance_m, noise_var_m2) - log_outlier)
 
     def nll(self, full: FloatArray, noise_var_m2: float) -> FloatArray:
-        """Objective per superquadric, full [B, 13] -> [B]: the negative log-likelihood of the
+        """Objective per superquadric, full [B, 14] -> [B]: the negative log-likelihood of the
         Gaussian-uniform mixture (eq. 4) plus the area term of eq. 7 (inlier count x log A),
         which keeps a partly seen shape from growing into the unseen space."""
         ratio = self.options.outlier_ratio
@@ -159,6 +201,14 @@ def _rotation_zyx(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> Float
     ], axis=-2)
 
 
+def _rotation_derivatives(params: FloatArray, rotation: FloatArray) -> list[FloatArray]:
+    """d R / d (yaw, pitch, roll) [3 x (3, 3)] of R = Rz Ry Rx (``rotation``) at params [14]."""
+    zero = np.zeros(1)
+    yaw_part = _rotation_zyx(params[None, _YAW], zero, zero)[0]
+    tilt = _rotation_zyx(zero, params[None, _PITCH], params[None, _ROLL])[0]
+    return [_GENERATOR_Z @ rotation, yaw_part @ _GENERATOR_Y @ tilt, rotation @ _GENERATOR_X]
+
+
 def _euler_zyx(rotation: FloatArray) -> tuple[float, float, float]:
     """(yaw, pitch, roll) of a rotation matrix [3, 3] (inverse of :func:`_rotation_zyx`)."""
     pitch = float(np.arctan2(-rotation[2, 0], np.hypot(rotation[0, 0], rotation[1, 0])))
@@ -168,7 +218,7 @@ def _euler_zyx(rotation: FloatArray) -> tuple[float, float, float]:
 
 
 def _pose(params: FloatArray) -> FloatArray:
-    """world_from_sq [4, 4] of a parameter vector [13]."""
+    """world_from_sq [4, 4] of a parameter vector [14]."""
     pose = np.eye(4)
     pose[:3, :3] = _rotation_zyx(params[None, _YAW], params[None, _PITCH], params[None, _ROLL])[0]
     pose[:3, 3] = params[[_X, _Y, _Z]]
@@ -176,7 +226,7 @@ def _pose(params: FloatArray) -> FloatArray:
 
 
 def to_superquadric(params: FloatArray) -> Superquadric:
-    """The :class:`Superquadric` of a parameter vector [13]."""
+    """The :class:`Superquadric` of a parameter vector [14]."""
     return Superquadric(params[_SCALE].copy(), params[_EXPONENTS].copy(), _pose(params),
                         params[_TAPER].copy())
 
@@ -199,8 +249,20 @@ def _principal_frame(points_m: FloatArray, on_table: bool) -> FloatArray:
     return frame
 
 
+def _dense_points(points_m: FloatArray) -> FloatArray:
+    """The points [M, 3] whose distance to their ``_DENSITY_NEIGHBOURS``-th neighbour is at most
+    ``_DENSITY_KEEP_RATIO`` times the median: surface points, without most uniform outliers
+    (which would otherwise inflate the initial extent, notably towards unseen sides)."""
+    if len(points_m) <= 2 * _DENSITY_NEIGHBOURS:
+        return points_m
+    spacing = cKDTree(points_m).query(points_m, _DENSITY_NEIGHBOURS + 1)[0][:, -1]
+    return points_m[spacing <= _DENSITY_KEEP_RATIO * np.median(spacing)]
+
+
 def _initial_params(points_m: FloatArray, on_table: bool) -> FloatArray:
-    """Initial guess [13]: principal axes, robust extents, exponents 0.5, no taper."""
+    """Initial guess [14]: principal axes and robust extents of the dense points, exponents
+    0.5, no taper."""
+    points_m = _dense_points(points_m)
     frame = _principal_frame(points_m, on_table)
     low, high = np.percentile(points_m @ frame, _INIT_PERCENTILES, axis=0)
     half = np.maximum(0.5 * (high - low), _MIN_SCALE_M)
@@ -218,19 +280,22 @@ def _initial_params(points_m: FloatArray, on_table: bool) -> FloatArray:
 
 
 def _bounds(points_m: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Lower and upper bounds [13] from the extent of the points."""
+    """Lower and upper bounds [14] from the extent of the points."""
     low, high = points_m.min(axis=0), points_m.max(axis=0)
     extent = float(np.max(high - low))
     lower = np.array([_MIN_SCALE_M] * 3 + [_EXPONENT_BOUNDS[0]] * 2 + [-1.0, 0.0]
-                     + list(low[:2] - extent) + [-np.inf, low[2] - extent, -np.inf, -np.inf])
+                     + list(low[:2] - extent) + [-np.inf, low[2] - extent, -np.inf, -np.inf]
+                     + [-_SHEAR_BOUND])
     upper = np.array([extent] * 3 + [_EXPONENT_BOUNDS[1]] * 2 + [1.0, 1.0]
-                     + list(high[:2] + extent) + [np.inf, high[2] + extent, np.inf, np.inf])
+                     + list(high[:2] + extent) + [np.inf, high[2] + extent, np.inf, np.inf]
+                     + [_SHEAR_BOUND])
     return lower, upper
 
 
 def _free_indices(options: EMSOptions) -> IntArray:
     fixed = set(_TILT_INDICES if options.on_table else ())
     fixed |= set(() if options.taper else _TAPER_INDICES)
+    fixed |= set(() if options.taper and options.shear else (_SHEAR,))
     return np.array([i for i in range(len(PARAMETER_NAMES)) if i not in fixed], dtype=np.int64)
 
 
@@ -247,20 +312,39 @@ def _make_problem(points_m: FloatArray, options: EMSOptions) -> _Problem:
 
 def _m_step(problem: _Problem, params: FloatArray, weights: FloatArray,
             noise_var_m2: float) -> FloatArray:
-    """A few bounded trust-region steps on eq. 7 (times 2 sigma^2): the residuals are
-    sqrt(p_i) * distance_i and one area residual. Returns the new params [13]."""
+    """A few bounded Levenberg-Marquardt steps on eq. 7 (times 2 sigma^2): the residuals are
+    sqrt(p_i) * distance_i and one area residual. Returns the new params [14].
+
+    The steps solve the small normal equations [F, F] (Marquardt's diagonal scaling) and are
+    clipped to the bounds; unlike an SVD of the [N + 1, F] Jacobian this stays fast when the
+    BLAS would spread small factorisations over several threads."""
     free = problem.free
+    lower, upper = problem.lower[free], problem.upper[free]
     residuals = _Residuals(problem, params, weights, noise_var_m2)
-    x0 = np.clip(params[free], problem.lower[free], problem.upper[free])
-    result = least_squares(residuals, x0, jac=residuals.jacobian, bounds=(problem.lower[free],
-                           problem.upper[free]), max_nfev=problem.options.m_step_evaluations,
-                           x_scale="jac")
-    return problem.expand(result.x[None, :], params)[0]
+    x = np.clip(params[free], lower, upper)
+    value = residuals(x)
+    cost, damping = float(value @ value), _LM_INITIAL_DAMPING
+    jac = residuals.jacobian(x)
+    for _ in range(problem.options.m_step_evaluations):
+        normal = jac.T @ jac
+        scaling = np.maximum(np.diag(normal), _LM_MIN_SCALING)
+        step = np.linalg.solve(normal + damping * np.diag(scaling), -(jac.T @ value))
+        trial = np.clip(x + step, lower, upper)
+        trial_value = residuals(trial)
+        trial_cost = float(trial_value @ trial_value)
+        if trial_cost < cost:
+            x, value, cost = trial, trial_value, trial_cost
+            damping = max(damping / _LM_DAMPING_FACTOR, _LM_MIN_DAMPING)
+            jac = residuals.jacobian(x)
+        else:
+            damping *= _LM_DAMPING_FACTOR
+    return problem.expand(x[None, :], params)[0]
 
 
 class _Residuals:
     """Weighted distances [N] and the area residual [1] of eq. 7 as a function of the free
-    parameters [F]; the Jacobian [N + 1, F] by forward differences in one batched pass."""
+    parameters [F]; the Jacobian [N + 1, F]: analytic for the distances, forward differences
+    for the (cheap) area residual."""
 
     def __init__(self, problem: _Problem, base: FloatArray, weights: FloatArray,
                  noise_var_m2: float) -> None:
@@ -273,16 +357,22 @@ class _Residuals:
     def batch(self, free_values: FloatArray) -> FloatArray:
         full = self.problem.expand(free_values, self.base)
         distance = self.sqrt_w * self.problem.distances(full)
-        log_area = self.problem.log_area(full) - _LOG_AREA_FLOOR
-        return np.hstack([distance, np.sqrt(self.area_gain * log_area)[:, None]])
+        return np.hstack([distance, self.area_residual(full)[:, None]])
 
     def __call__(self, x: FloatArray) -> FloatArray:
         return self.batch(x[None, :])[0]
 
     def jacobian(self, x: FloatArray) -> FloatArray:
+        full = self.problem.expand(x[None, :], self.base)
+        grad = self.problem.distance_gradient(full[0])
         step = _FD_STEP * np.maximum(np.abs(x), _FD_FLOOR)
-        values = self.batch(np.vstack([x, x + np.diag(step)]))
-        return ((values[1:] - values[0]) / step[:, None]).T
+        area = self.area_residual(self.problem.expand(np.vstack([x, x + np.diag(step)]),
+                                                      self.base))
+        return np.vstack([self.sqrt_w[:, None] * grad, (area[1:] - area[0]) / step])
+
+    def area_residual(self, full: FloatArray) -> FloatArray:
+        """sqrt(gain (log A - floor)) per superquadric: full [B, 14] -> [B]."""
+        return np.sqrt(self.area_gain * (self.problem.log_area(full) - _LOG_AREA_FLOOR))
 
 
 def _noise_var(problem: _Problem, distance_m: FloatArray, weights: FloatArray) -> float:
@@ -291,7 +381,7 @@ def _noise_var(problem: _Problem, distance_m: FloatArray, weights: FloatArray) -
 
 
 def _candidates(params: FloatArray, options: EMSOptions) -> FloatArray:
-    """Similar superquadrics to try when EM is stuck: [C, 13]."""
+    """Similar superquadrics to try when EM is stuck: [C, 14]."""
     swapped = params.copy()
     if options.on_table:
         swapped[[0, 1]] = params[[1, 0]]
@@ -307,6 +397,10 @@ def _candidates(params: FloatArray, options: EMSOptions) -> FloatArray:
         halved = params.copy()
         halved[_TAPER] = 0.5 * params[_TAPER]
         out += [flipped, halved]
+    if options.taper and options.shear:
+        sheared = params.copy()
+        sheared[_SHEAR] = -params[_SHEAR]
+        out.append(sheared)
     return np.array(out)
 
 
@@ -349,13 +443,14 @@ def _em_iteration(problem: _Problem, state: _State) -> _State:
 
 
 def _switch(problem: _Problem, state: _State) -> _State | None:
-    """The S-step: the best improving candidate after one EM iteration, or None."""
+    """The S-step: of the ``_SWITCH_TRIALS`` most likely candidates, the first that improves
+    after one EM iteration, or None."""
     candidates = _candidates(state.params, problem.options)
     candidates = np.clip(candidates, problem.lower, problem.upper)
     if problem.on_table:
         candidates[:, _Z] = candidates[:, _A3]
     nll = problem.nll(candidates, state.noise_var_m2)
-    for index in np.argsort(nll):
+    for index in np.argsort(nll)[:_SWITCH_TRIALS]:
         trial = _em_iteration(problem, _State(candidates[index], state.noise_var_m2, nll[index]))
         if trial.nll < state.nll - problem.options.tolerance_nats * len(problem.points_m):
             logger.debug("EMS switched to candidate %d (nll %.1f -> %.1f)", index, state.nll,
@@ -364,19 +459,22 @@ def _switch(problem: _Problem, state: _State) -> _State | None:
     return None
 
 
-def _run_ems(problem: _Problem, params: FloatArray) -> _State:
+def _run_ems(problem: _Problem, params: FloatArray, max_iterations: int,
+             max_switches: int) -> _State:
+    """EM from params [14] until the likelihood stops improving, with up to ``max_switches``
+    S-steps."""
     distance = problem.distances(params[None])[0]
     noise_var = _noise_var(problem, distance, np.ones_like(distance))
     state = _State(params, noise_var, float(problem.nll(params[None], noise_var)[0]))
     switches = 0
     tolerance = problem.options.tolerance_nats * len(problem.points_m)
-    for _ in range(problem.options.max_iterations):
+    for _ in range(max_iterations):
         new_state = _em_iteration(problem, state)
         improved = state.nll - new_state.nll > tolerance
         state = new_state if new_state.nll < state.nll else state
         if improved:
             continue
-        if switches >= problem.options.max_switches:
+        if switches >= max_switches:
             break
         switches += 1
         switched = _switch(problem, state)
@@ -388,7 +486,7 @@ def _run_ems(problem: _Problem, params: FloatArray) -> _State:
 
 def _parameter_std(problem: _Problem, params: FloatArray, weights: FloatArray,
                    noise_var_m2: float) -> FloatArray:
-    """Standard deviations [13] from the Jacobian at the optimum: sqrt(diag((J^T J)^-1) s^2)."""
+    """Standard deviations [14] from the Jacobian at the optimum: sqrt(diag((J^T J)^-1) s^2)."""
     residuals = _Residuals(problem, params, weights, noise_var_m2)
     jac = residuals.jacobian(params[problem.free])
     residual = residuals(params[problem.free])[:-1]
@@ -418,15 +516,17 @@ def _canonical(params: FloatArray, options: EMSOptions) -> FloatArray:
 def fit_superquadric(points_m: FloatArray, options: EMSOptions) -> EMSResult:
     """Fit one (tapered) superquadric to points [N, 3] (N >= 10, finite) by EMS.
 
-    EM runs on at most ``max_fit_points`` points (a fixed random subset); the inlier
-    probabilities and the uncertainty use all points.
+    EM with switching runs on a fixed random subset of ``_COARSE_FIT_POINTS``, then at most
+    ``_FINE_ITERATIONS`` EM iterations refine it on ``max_fit_points`` (a superset); the
+    inlier probabilities and the uncertainty use all points.
     """
-    subset = points_m
-    if len(points_m) > options.max_fit_points:
-        chosen = np.random.default_rng(0).choice(len(points_m), options.max_fit_points,
-                                                 replace=False)
-        subset = points_m[chosen]
-    state = _run_ems(_make_problem(subset, options), _initial_params(subset, options.on_table))
+    order = np.random.default_rng(0).permutation(len(points_m))
+    subset = points_m[order[: options.max_fit_points]]
+    coarse = subset[: min(_COARSE_FIT_POINTS, len(subset))]
+    state = _run_ems(_make_problem(coarse, options), _initial_params(subset, options.on_table),
+                     options.max_iterations, options.max_switches)
+    if len(subset) > len(coarse):
+        state = _run_ems(_make_problem(subset, options), state.params, _FINE_ITERATIONS, 0)
     params = _canonical(state.params, options)
     problem = _make_problem(points_m, options)
     weights = problem.posterior(problem.distances(params[None])[0], state.noise_var_m2)
@@ -507,8 +607,9 @@ class EMSEstimator(Component):
         outlier_ratio: float = Field(0.2, gt=0, lt=1, description="prior outlier probability w0")
         max_iterations: int = Field(20, gt=0, description="EM iterations per fit")
         max_switches: int = Field(2, ge=0, description="S-steps (candidate switches) per fit")
-        m_step_evaluations: int = Field(8, gt=0, description="least-squares evaluations per M")
+        m_step_evaluations: int = Field(4, gt=0, description="least-squares evaluations per M")
         taper: bool = Field(True, description="fit the tapering of eq. 2")
+        shear: bool = Field(True, description="with taper: fit the shear (beyond the paper)")
         on_table: bool = Field(True, description="yaw-only rotation, base on the table z = 0")
         table_clearance_m: float = Field(0.008, ge=0, description="drop points below this z")
         min_points: int = Field(50, ge=10, description="fewer points above the table: error")
@@ -525,7 +626,8 @@ class EMSEstimator(Component):
         self.options = EMSOptions(
             outlier_ratio=config.outlier_ratio, max_iterations=config.max_iterations,
             max_switches=config.max_switches, m_step_evaluations=config.m_step_evaluations,
-            min_noise_m=config.min_noise_m, taper=config.taper, on_table=config.on_table,
+            min_noise_m=config.min_noise_m, taper=config.taper, shear=config.shear,
+            on_table=config.on_table,
             max_fit_points=config.max_fit_points,
         )
 

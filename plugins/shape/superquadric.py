@@ -14,8 +14,14 @@ with kappa1 in [-1, 1] and kappa2 in [0, 1] (then f >= 0 on the surface). The pa
 is the plain superquadric. ``y/a2`` is clipped to [-1, 1] inside ``f`` so the map stays
 invertible off the surface.
 
+Extension beyond the paper: an optional shear after the taper, ``X = f(y) x + s y`` (s
+dimensionless, the third element of ``taper``). The symmetric taper only makes isosceles
+triangles; taper plus shear makes any triangle (e.g. right triangles) and skewed tapered
+shapes. A two-element ``taper`` means no shear.
+
 Every function broadcasts over leading batch dimensions: ``points [..., N, 3]`` with parameters
-``scale [..., 3]``, ``exponents [..., 2]``, ``taper [..., 2]``.
+``scale [..., 3]``, ``exponents [..., 2]``, ``taper [..., 2]`` or ``[..., 3]`` (kappa1, kappa2,
+shear).
 """
 
 from __future__ import annotations
@@ -39,16 +45,23 @@ def taper_factor(y_m: FloatArray, a2_m: FloatArray, taper: FloatArray) -> FloatA
     return np.maximum(factor, _MIN_TAPER_FACTOR)
 
 
+def shear_of(taper: FloatArray) -> FloatArray:
+    """The shear s [...] of a taper [..., 2 or 3] (zero when it has two elements)."""
+    return taper[..., 2] if taper.shape[-1] > 2 else np.zeros(taper.shape[:-1])
+
+
 def apply_taper(points: FloatArray, scale_m: FloatArray, taper: FloatArray) -> FloatArray:
-    """Deform superquadric-frame points [..., N, 3] by eq. 2. Returns [..., N, 3]."""
+    """Deform superquadric-frame points [..., N, 3] by eq. 2, then shear. Returns [..., N, 3]."""
     factor = taper_factor(points[..., 1], scale_m[..., 1], taper)
-    return np.concatenate([points[..., :1] * factor[..., None], points[..., 1:]], axis=-1)
+    x = points[..., :1] * factor[..., None] + shear_of(taper)[..., None, None] * points[..., 1:2]
+    return np.concatenate([x, points[..., 1:]], axis=-1)
 
 
 def remove_taper(points: FloatArray, scale_m: FloatArray, taper: FloatArray) -> FloatArray:
     """Inverse of :func:`apply_taper` (y is unchanged, so f(y) is known). [..., N, 3]."""
     factor = taper_factor(points[..., 1], scale_m[..., 1], taper)
-    return np.concatenate([points[..., :1] / factor[..., None], points[..., 1:]], axis=-1)
+    x = points[..., :1] - shear_of(taper)[..., None, None] * points[..., 1:2]
+    return np.concatenate([x / factor[..., None], points[..., 1:]], axis=-1)
 
 
 def log_inside_outside(
@@ -93,6 +106,88 @@ def radial_distance_m(
     """Distance from each point [..., N, 3] to its radial surface point. Returns [..., N]."""
     surface = radial_surface_points(points, scale_m, exponents, taper)
     return np.linalg.norm(points - surface, axis=-1)
+
+
+def _logaddexp_weight(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """log(e^a + e^b) [N] and the share of the first term e^a / (e^a + e^b) [N]."""
+    total = np.logaddexp(a, b)
+    return total, np.exp(a - total)
+
+
+def radial_distance_gradient(
+    points: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Radial distance (as :func:`radial_distance_m`) of untransformed superquadric-frame
+    points [N, 3] to one superquadric (scale [3], exponents [2], taper [3]) and its analytic
+    gradient [N, 11] with respect to (qx, qy, qz, a1, a2, a3, eps1, eps2, kappa1, kappa2,
+    shear), by reverse-mode differentiation of the forward pass written out below."""
+    a1, a2, a3 = (float(v) for v in scale_m)
+    eps1, eps2 = (float(v) for v in exponents)
+    k1, k2, shear = float(taper[0]), float(taper[1]), float(shear_of(taper))
+    qx, qy, qz = points[:, 0], points[:, 1], points[:, 2]
+    # Forward: untaper, inside-outside in log space, radial scale, taper back.
+    t_in, t_in_free = _taper_coordinate(qy, a2)
+    f_in, f_in_free = _taper_value(t_in, k1, k2)
+    u = np.stack([(qx - shear * qy) / f_in, qy, qz], axis=-1)
+    abs_u = np.abs(u)
+    u_free = abs_u > _TINY_M
+    log_ratio = np.log(np.maximum(abs_u, _TINY_M)) - np.log(np.asarray(scale_m))
+    log_xy, share_x = _logaddexp_weight(2.0 / eps2 * log_ratio[:, 0], 2.0 / eps2 * log_ratio[:, 1])
+    log_f, share_xy = _logaddexp_weight(eps2 / eps1 * log_xy, 2.0 / eps1 * log_ratio[:, 2])
+    log_f_free = log_f > _MIN_LOG_F
+    radial = np.exp(-0.5 * eps1 * np.maximum(log_f, _MIN_LOG_F))
+    v = u * radial[:, None]
+    t_out, t_out_free = _taper_coordinate(v[:, 1], a2)
+    f_out, f_out_free = _taper_value(t_out, k1, k2)
+    residual = points - np.stack([f_out * v[:, 0] + shear * v[:, 1], v[:, 1], v[:, 2]], axis=-1)
+    distance = np.linalg.norm(residual, axis=-1)
+    # Backward.
+    grad = np.zeros((len(points), 11))
+    g_surface = -residual / np.maximum(distance, _TINY_M)[:, None]
+    grad[:, :3] = -g_surface
+    g_f_out = g_surface[:, 0] * v[:, 0] * f_out_free
+    g_t_out = g_f_out * (k1 + 2.0 * k2 * t_out) * t_out_free
+    grad[:, 8] = g_f_out * t_out
+    grad[:, 9] = g_f_out * t_out * t_out
+    grad[:, 10] = g_surface[:, 0] * v[:, 1]
+    g_v = np.stack([g_surface[:, 0] * f_out,
+                    g_surface[:, 0] * shear + g_surface[:, 1] + g_t_out / a2,
+                    g_surface[:, 2]], axis=-1)
+    grad[:, 4] = -g_t_out * v[:, 1] / (a2 * a2)
+    g_log_f = -0.5 * eps1 * radial * np.sum(g_v * u, axis=-1) * log_f_free
+    grad[:, 6] = -0.5 * radial * np.sum(g_v * u, axis=-1) * np.maximum(log_f, _MIN_LOG_F)
+    g_xy, g_z = g_log_f * share_xy, g_log_f * (1.0 - share_xy)
+    grad[:, 7] += g_xy * log_xy / eps1
+    grad[:, 6] += -g_xy * eps2 * log_xy / eps1**2 - g_z * 2.0 * log_ratio[:, 2] / eps1**2
+    g_log_xy = g_xy * eps2 / eps1
+    g_log_ratio = np.stack([g_log_xy * share_x * 2.0 / eps2,
+                            g_log_xy * (1.0 - share_x) * 2.0 / eps2, g_z * 2.0 / eps1], axis=-1)
+    grad[:, 7] += -g_log_xy * 2.0 * (share_x * log_ratio[:, 0]
+                                     + (1.0 - share_x) * log_ratio[:, 1]) / eps2**2
+    grad[:, 3:6] += -g_log_ratio / np.array([a1, a2, a3])
+    g_u = g_v * radial[:, None] + np.where(u_free, g_log_ratio / np.where(u_free, u, 1.0), 0.0)
+    g_f_in = -g_u[:, 0] * u[:, 0] / f_in * f_in_free
+    g_t_in = g_f_in * (k1 + 2.0 * k2 * t_in) * t_in_free
+    grad[:, 8] += g_f_in * t_in
+    grad[:, 9] += g_f_in * t_in * t_in
+    grad[:, 10] += -g_u[:, 0] * qy / f_in
+    grad[:, 0] += g_u[:, 0] / f_in
+    grad[:, 1] += -g_u[:, 0] * shear / f_in + g_u[:, 1] + g_t_in / a2
+    grad[:, 2] += g_u[:, 2]
+    grad[:, 4] += -g_t_in * qy / (a2 * a2)
+    return distance, grad
+
+
+def _taper_coordinate(y_m: FloatArray, a2_m: float) -> tuple[FloatArray, FloatArray]:
+    """t = y / a2 clipped to [-1, 1] [N], and 1.0 where it is not clipped (else 0.0) [N]."""
+    t = y_m / a2_m
+    return np.clip(t, -1.0, 1.0), (np.abs(t) < 1.0).astype(float)
+
+
+def _taper_value(t: FloatArray, kappa1: float, kappa2: float) -> tuple[FloatArray, FloatArray]:
+    """f(t) of eq. 2 with its floor [N], and 1.0 where the floor is not active [N]."""
+    factor = 1.0 + kappa1 * t + kappa2 * t * t
+    return np.maximum(factor, _MIN_TAPER_FACTOR), (factor > _MIN_TAPER_FACTOR).astype(float)
 
 
 def to_superquadric_frame(sq: Superquadric, points_m: FloatArray) -> FloatArray:

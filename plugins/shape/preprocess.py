@@ -1,0 +1,227 @@
+"""Point-cloud pre-processing with open3d: ``shape.open3d_cloud``.
+
+Registration of each new view onto the views so far (point-to-plane ICP, to absorb residual
+camera calibration error), then segmentation of the merged cloud: voxel downsampling, table
+removal by a RANSAC plane, and the largest DBSCAN cluster above it. Paper 1, III-B1.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import open3d as o3d
+from pydantic import Field
+from vistac.component import Component, ComponentConfig, ComponentContext
+from vistac.errors import DataError
+from vistac.types import FloatArray, PointCloud
+
+log = logging.getLogger(__name__)
+
+_MIN_HORIZONTAL_NORMAL_Z = 0.9
+"""A table plane's unit normal has |n_z| at least this (tilts up to about 25 degrees)."""
+_MAX_PLANES = 3
+_MIN_PLANE_POINTS = 30
+_MAX_SHARE_BELOW_TABLE = 0.05
+
+
+def _o3d_cloud(points_m: FloatArray) -> o3d.geometry.PointCloud:
+    cloud = o3d.geometry.PointCloud()
+    cloud.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points_m, dtype=np.float64))
+    return cloud
+
+
+def finite_points(cloud: PointCloud, who: str) -> FloatArray:
+    """The cloud's points [N, 3]; DataError when empty or not finite."""
+    points = np.asarray(cloud.points_m, dtype=np.float64)
+    if len(points) == 0:
+        raise DataError(f"{who}: the point cloud is empty; check that the camera sees the object")
+    if not np.all(np.isfinite(points)):
+        raise DataError(f"{who}: the point cloud has NaN or inf points; drop invalid pixels first")
+    return points
+
+
+def voxel_downsample(points_m: FloatArray, voxel_m: float) -> FloatArray:
+    """One point per occupied voxel (the voxel's mean): [M, 3]."""
+    if voxel_m <= 0:
+        return points_m
+    return np.asarray(_o3d_cloud(points_m).voxel_down_sample(voxel_m).points)
+
+
+def table_plane(
+    points_m: FloatArray, distance_m: float, iterations: int, seed: int
+) -> FloatArray | None:
+    """The table: the lowest near-horizontal RANSAC plane [4] = (a, b, c, d) with
+    a x + b y + c z + d = 0 and c > 0 (normal up), or None when there is none (a cloud of the
+    object only). Planes with many points below them (an object's top face) are skipped."""
+    o3d.utility.random.seed(seed)
+    remaining = points_m
+    for _ in range(_MAX_PLANES):
+        if len(remaining) < _MIN_PLANE_POINTS:
+            return None
+        plane, inliers = _o3d_cloud(remaining).segment_plane(distance_m, 3, iterations)
+        plane = np.asarray(plane, dtype=np.float64) / np.linalg.norm(plane[:3])
+        plane = plane if plane[2] > 0 else -plane
+        below = np.mean(points_m @ plane[:3] + plane[3] < -2 * distance_m)
+        if plane[2] >= _MIN_HORIZONTAL_NORMAL_Z and below < _MAX_SHARE_BELOW_TABLE:
+            return plane
+        remaining = np.delete(remaining, inliers, axis=0)
+    return None
+
+
+def object_cluster(
+    points_m: FloatArray,
+    height_m: FloatArray,
+    radius_m: float,
+    min_points: int,
+    max_base_height_m: float,
+) -> FloatArray:
+    """The points [K, 3] of the largest DBSCAN cluster that stands on the table (its lowest
+    point at most ``max_base_height_m`` above it: not the gripper hovering in view).
+
+    points_m: [N, 3]; height_m: [N] height of each point above the table plane. Returns an
+    empty array when no cluster qualifies."""
+    if len(points_m) == 0:
+        return points_m
+    labels = np.asarray(_o3d_cloud(points_m).cluster_dbscan(radius_m, min_points))
+    best, best_size = None, 0
+    for label in range(labels.max(initial=-1) + 1):
+        members = labels == label
+        size = int(members.sum())
+        if size > best_size and height_m[members].min() <= max_base_height_m:
+            best, best_size = members, size
+    return points_m[best] if best is not None else points_m[:0]
+
+
+def icp_align(
+    source_m: FloatArray, target_m: FloatArray, max_distance_m: float, normal_radius_m: float
+) -> tuple[FloatArray, float]:
+    """Rigid transform [4, 4] that moves ``source_m`` [N, 3] onto ``target_m`` [M, 3]
+    (point-to-plane ICP from the identity) and its fitness (share of source points matched)."""
+    source, target = _o3d_cloud(source_m), _o3d_cloud(target_m)
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m, max_nn=30)
+    target.estimate_normals(search)
+    result = o3d.pipelines.registration.registration_icp(
+        source,
+        target,
+        max_distance_m,
+        np.eye(4),
+        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+    )
+    return np.asarray(result.transformation), float(result.fitness)
+
+
+def transform_points(transform: FloatArray, points_m: FloatArray) -> FloatArray:
+    """Apply a homogeneous transform [4, 4] to points [N, 3]."""
+    return points_m @ transform[:3, :3].T + transform[:3, 3]
+
+
+class Open3dCloudProcessor(Component):
+    """Implements the ``CloudProcessor`` protocol with open3d.
+
+    Each view is cut down to what lies above its RANSAC table plane (the plane is fitted on a
+    random subset, the cut is done on all points), voxel-downsampled, and registered onto the
+    object points of the previous views; ``segment`` keeps the largest cluster of them all.
+    """
+
+    kind = "cloud_processor"
+
+    class Config(ComponentConfig):
+        voxel_m: float = Field(0.003, ge=0, description="voxel size of the downsampling; 0: off")
+        table_distance_m: float = Field(0.004, gt=0, description="RANSAC plane inlier distance")
+        table_clearance_m: float = Field(
+            0.006, ge=0, description="keep points at least this far above the table plane"
+        )
+        ransac_points: int = Field(5000, gt=2, description="random subset the plane is fitted on")
+        ransac_iterations: int = Field(200, gt=0)
+        cluster_radius_m: float = Field(0.012, gt=0, description="DBSCAN neighbourhood radius")
+        cluster_min_points: int = Field(10, gt=0, description="DBSCAN core point neighbours")
+        min_object_points: int = Field(50, gt=0, description="fewer object points: error")
+        max_base_height_m: float = Field(
+            0.02, gt=0, description="the object's lowest point is at most this above the table"
+        )
+        icp: bool = Field(True, description="register each new view onto the previous ones")
+        icp_max_distance_m: float = Field(0.01, gt=0, description="ICP correspondence radius")
+        icp_min_fitness: float = Field(
+            0.3, ge=0, le=1, description="below this share of matched points keep the view as is"
+        )
+        icp_max_correction_m: float = Field(
+            0.02, gt=0, description="larger ICP corrections are rejected as wrong"
+        )
+
+    def __init__(self, config: Config, ctx: ComponentContext) -> None:
+        super().__init__(config, ctx)
+        self.config: Open3dCloudProcessor.Config = config
+        self._rng = ctx.rng("cloud_processor")
+        self._object_views: list[FloatArray] = []
+        self._plane: FloatArray | None = None
+
+    def register(self, view: PointCloud, previous: PointCloud | None) -> PointCloud:
+        """``view`` moved onto ``previous`` (both world frame) when ICP on the points above
+        the table finds a good match; otherwise ``view`` unchanged."""
+        points = finite_points(view, "shape.open3d_cloud")
+        source = voxel_downsample(self._above_table(points), self.config.voxel_m)
+        if previous is None:
+            self._object_views = []
+        target = np.concatenate(self._object_views) if self._object_views else source[:0]
+        transform = self._icp(source, target) if previous is not None else None
+        if transform is None:
+            self._object_views.append(source)
+            return view
+        self._object_views.append(transform_points(transform, source))
+        return PointCloud(transform_points(transform, points))
+
+    def segment(self, cloud: PointCloud) -> PointCloud:
+        """The object's points: above the table, downsampled, the largest cluster standing on
+        the table. Uses the registered views when ``cloud`` is their merge; DataError when
+        fewer than ``min_object_points`` remain (e.g. a cloud that is all table)."""
+        points = finite_points(cloud, "shape.open3d_cloud")
+        above = (
+            np.concatenate(self._object_views) if self._object_views else self._above_table(points)
+        )
+        config = self.config
+        above = voxel_downsample(above, config.voxel_m)
+        height_m = (
+            above @ self._plane[:3] + self._plane[3] if self._plane is not None else above[:, 2]
+        )
+        cluster = object_cluster(
+            above, height_m, config.cluster_radius_m, config.cluster_min_points,
+            config.max_base_height_m,
+        )  # fmt: skip
+        if len(cluster) < config.min_object_points:
+            raise DataError(
+                f"shape.open3d_cloud: only {len(cluster)} object points stand on the table "
+                f"(from {len(points)}), fewer than min_object_points = "
+                f"{config.min_object_points}; is the object in view?"
+            )
+        return PointCloud(cluster)
+
+    def _icp(self, source: FloatArray, target: FloatArray) -> FloatArray | None:
+        """The ICP correction [4, 4] of source onto target, or None when there is no
+        trustworthy one (too few points, poor fitness, implausibly large shift)."""
+        config = self.config
+        if not config.icp or len(source) < config.min_object_points or len(target) < 3:
+            return None
+        transform, fitness = icp_align(
+            source, target, config.icp_max_distance_m, max(3 * config.voxel_m, 0.005)
+        )
+        correction_m = float(np.linalg.norm(transform[:3, 3]))
+        if fitness < config.icp_min_fitness or correction_m > config.icp_max_correction_m:
+            log.info("ICP rejected (fitness %.2f, shift %.1f mm)", fitness, 1e3 * correction_m)
+            return None
+        log.info("ICP: fitness %.2f, shift %.2f mm", fitness, 1e3 * correction_m)
+        return transform
+
+    def _above_table(self, points_m: FloatArray) -> FloatArray:
+        """Points [K, 3] more than the clearance above the RANSAC table plane (all points when
+        no horizontal plane is found, e.g. a cloud of the object only)."""
+        config = self.config
+        count = min(len(points_m), config.ransac_points)
+        subset = points_m[self._rng.choice(len(points_m), size=count, replace=False)]
+        seed = int(self._rng.integers(2**31))
+        plane = table_plane(subset, config.table_distance_m, config.ransac_iterations, seed)
+        if plane is None:
+            return points_m
+        self._plane = plane
+        height_m = points_m @ plane[:3] + plane[3]
+        return points_m[height_m > config.table_clearance_m]

@@ -1,0 +1,138 @@
+"""Point-cloud pre-processing (table removal, object cluster, ICP) and the shape metric."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from simctx import TestContext
+from vistac.errors import DataError
+from vistac.objects import footprint_polygon, prism_distance_m, prism_surface_points, to_world_xy
+from vistac.plugins.shape.evaluation import shape_errors
+from vistac.plugins.shape.preprocess import Open3dCloudProcessor, transform_points
+from vistac.protocols import CloudProcessor
+from vistac.types import PointCloud
+
+
+def table_points(rng: np.random.Generator, count: int = 20_000) -> np.ndarray:
+    """A 1 m x 1 m table top at z = 0 with 1 mm noise: [count, 3]."""
+    xy = rng.uniform([-0.5, -0.05], [0.5, 0.95], size=(count, 2))
+    return np.column_stack([xy, rng.normal(0.0, 0.001, count)])
+
+
+def box_points(rng: np.random.Generator, centre: tuple[float, float], z0: float = 0.0) -> np.ndarray:
+    """The visible surface (no bottom) of a rect1 prism (90 x 90 x 50 mm) at ``centre``."""
+    polygon = footprint_polygon("rect1")
+    points = prism_surface_points(polygon, 0.05, 6000, rng)
+    points = points[points[:, 2] > 1e-6]
+    points = to_world_xy(points, np.array([centre[0], centre[1], 0.3]))
+    points[:, 2] += z0
+    return points + rng.normal(0.0, 0.001, points.shape)
+
+
+@pytest.fixture
+def processor(tmp_path: Path) -> Open3dCloudProcessor:
+    return TestContext(tmp_path).add(Open3dCloudProcessor)
+
+
+def test_processor_implements_the_protocol(processor: Open3dCloudProcessor) -> None:
+    assert isinstance(processor, CloudProcessor)
+
+
+def test_segment_keeps_the_object_standing_on_the_table(processor: Open3dCloudProcessor) -> None:
+    rng = np.random.default_rng(0)
+    box = box_points(rng, (0.0, 0.45))
+    hovering = box_points(rng, (0.2, 0.3), z0=0.10)  # bigger than nothing, but not on the table
+    hovering = np.concatenate([hovering, box_points(rng, (0.2, 0.3), z0=0.1)])
+    cloud = PointCloud(np.concatenate([table_points(rng), box, hovering]))
+    segmented = processor.segment(cloud).points_m
+    assert len(segmented) > 300
+    assert np.all(np.abs(segmented[:, 0]) < 0.07)
+    assert np.all(np.abs(segmented[:, 1] - 0.45) < 0.07)
+    assert segmented[:, 2].min() > 0.004, "table points were left in"
+
+
+@pytest.mark.parametrize(
+    ("points", "message"),
+    [
+        (np.zeros((0, 3)), "empty"),
+        (np.array([[0.0, 0.0, np.nan]] * 100), "NaN"),
+    ],
+)
+def test_segment_rejects_bad_clouds(
+    processor: Open3dCloudProcessor, points: np.ndarray, message: str
+) -> None:
+    with pytest.raises(DataError, match=message):
+        processor.segment(PointCloud(points))
+
+
+def test_segment_rejects_a_cloud_that_is_all_table(processor: Open3dCloudProcessor) -> None:
+    with pytest.raises(DataError, match="stand on the table"):
+        processor.segment(PointCloud(table_points(np.random.default_rng(1))))
+
+
+def test_icp_undoes_a_small_calibration_error(processor: Open3dCloudProcessor) -> None:
+    rng = np.random.default_rng(2)
+    first = np.concatenate([table_points(rng), box_points(rng, (0.0, 0.45))])
+    second = np.concatenate([table_points(rng), box_points(rng, (0.0, 0.45))])
+    angle = np.radians(1.0)
+    error = np.eye(4)
+    error[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    error[:3, 3] = [0.004, -0.003, 0.0]
+    processor.register(PointCloud(first), None)
+    aligned = processor.register(PointCloud(transform_points(error, second)), PointCloud(first))
+    residual_m = np.linalg.norm(aligned.points_m - second, axis=1)
+    assert np.median(residual_m) < 0.001, f"ICP left {np.median(residual_m) * 1e3:.2f} mm"
+
+
+def test_icp_never_makes_an_aligned_view_worse(processor: Open3dCloudProcessor) -> None:
+    rng = np.random.default_rng(3)
+    first = np.concatenate([table_points(rng), box_points(rng, (0.0, 0.45))])
+    second = np.concatenate([table_points(rng), box_points(rng, (0.0, 0.45))])
+    processor.register(PointCloud(first), None)
+    aligned = processor.register(PointCloud(second), PointCloud(first))
+    assert np.median(np.linalg.norm(aligned.points_m - second, axis=1)) < 0.0005
+
+
+def test_prism_distance_known_answers() -> None:
+    polygon = footprint_polygon("rect1")  # 90 x 90 mm, centred
+    points = np.array(
+        [
+            [0.0, 0.0, 0.10],  # 5 cm above the top face
+            [0.0, 0.0, 0.02],  # inside, 2 cm above the bottom, 4.5 cm from the sides
+            [0.1, 0.0, 0.025],  # 5.5 cm beside the +x side
+            [0.055, 0.055, 0.06],  # off a top corner edge: (1, 1, 1) cm
+        ]
+    )
+    expected = [0.05, 0.02, 0.055, np.sqrt(3) * 0.01]
+    np.testing.assert_allclose(prism_distance_m(points, polygon, 0.05), expected, atol=1e-12)
+    on_surface = prism_surface_points(polygon, 0.05, 500, np.random.default_rng(0))
+    assert prism_distance_m(on_surface, polygon, 0.05).max() < 1e-12
+
+
+def _box_shape_summary(offset_m: float) -> dict[str, object]:
+    pose = np.eye(4)
+    pose[:3, 3] = [offset_m, 0.45, 0.025]
+    superquadric = {
+        "scale_m": [0.045, 0.045, 0.025],
+        "exponents": [0.1, 0.1],
+        "world_from_sq": pose.tolist(),
+        "taper": [0.0, 0.0],
+    }
+    return {"links": [{"superquadric": superquadric}], "true_link_poses": [[0.0, 0.45, 0.0]]}
+
+
+def test_shape_errors_measure_the_chamfer_distance() -> None:
+    spec = {
+        "name": "box",
+        "type": "homogeneous",
+        "links": [{"footprint": "rect1", "height_m": 0.05, "mass_kg": 0.5, "friction": 0.3}],
+        "pose": [0.0, 0.45, 0.0],
+    }
+    truth = {"object": spec, "link_poses": [[0.0, 0.45, 0.0]]}
+    exact = shape_errors(_box_shape_summary(0.0), truth)["chamfer_m"][0]
+    shifted = shape_errors(_box_shape_summary(0.005), truth)["chamfer_m"][0]
+    assert exact < 0.0005, "a near-exact box must score under 0.5 mm"
+    # Shifting by 5 mm along x: the two x faces (a quarter of the area each... about) move.
+    assert 0.001 < shifted < 0.005
