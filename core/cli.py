@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from vistac import __version__
-from vistac.errors import VistacError
+from vistac.errors import ConfigError, VistacError
 from vistac.pluginmanager import Plugins, load_plugins
 
 log = logging.getLogger("vistac")
@@ -106,7 +106,6 @@ def _belief_table(belief: dict[str, dict[str, float]], truth: dict[str, float]) 
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    from vistac.errors import ConfigError
     from vistac.skill import load_skill
 
     plugins = _plugins(args)
@@ -179,6 +178,16 @@ def cmd_objects_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from vistac.plugins.filters.train import load_preset, train
+
+    if not args.skill.is_file():
+        raise ConfigError(f"{args.skill}: no such collection skill file")
+    report = train(args.skill, args.out, load_preset(args.preset), args.data or None)
+    print(f"trained in {report['time_s']:.0f} s; checkpoints and train.json in {args.out}")
+    return 0
+
+
 def _add_skill_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--set",
@@ -231,6 +240,15 @@ def build_parser() -> argparse.ArgumentParser:
     tree.add_argument("skill", type=Path)
     _add_skill_options(tree)
     tree.set_defaults(func=cmd_tree)
+
+    train = sub.add_parser("train", help="collect interactions in simulation and train models")
+    train.add_argument("skill", type=Path, help="the collection skill, e.g. collect_pushes.yaml")
+    train.add_argument("--out", type=Path, required=True, help="checkpoint folder")
+    train.add_argument("--preset", default="tiny", help="tiny, paper or a preset YAML file")
+    train.add_argument(
+        "--data", type=Path, action="append", help="train on these recorded run folders instead"
+    )
+    train.set_defaults(func=cmd_train)
 
     objects = sub.add_parser("objects", help="object configurations")
     objects_sub = objects.add_subparsers(dest="objects_command", required=True)

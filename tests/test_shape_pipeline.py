@@ -43,8 +43,9 @@ def test_processor_implements_the_protocol(processor: Open3dCloudProcessor) -> N
 def test_segment_keeps_the_object_standing_on_the_table(processor: Open3dCloudProcessor) -> None:
     rng = np.random.default_rng(0)
     box = box_points(rng, (0.0, 0.45))
-    hovering = box_points(rng, (0.2, 0.3), z0=0.10)  # bigger than nothing, but not on the table
-    hovering = np.concatenate([hovering, box_points(rng, (0.2, 0.3), z0=0.1)])
+    # Twice as many points as the object, but hovering like the parked gripper.
+    hovering = box_points(rng, (0.2, 0.3), z0=0.12)
+    hovering = np.concatenate([hovering, box_points(rng, (0.2, 0.3), z0=0.12)])
     cloud = PointCloud(np.concatenate([table_points(rng), box, hovering]))
     segmented = processor.segment(cloud).points_m
     assert len(segmented) > 300

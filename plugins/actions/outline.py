@@ -69,7 +69,9 @@ class OutlineSampler(Component):
         self.config: OutlineSampler.Config = config
 
     def sample(self, scene: Scene, rng: np.random.Generator) -> list[Action]:
-        hull_xy = self.outline(scene.cloud.points_m)
+        # The segmented object cloud of the shape estimate when there is one (no clutter).
+        cloud = scene.shape.cloud if scene.shape is not None else scene.cloud
+        hull_xy = self.outline(cloud.points_m)
         kinds = rng.choice(self.config.interactions, size=self.config.samples)
         actions: list[Action] = []
         for kind in kinds:

@@ -76,8 +76,9 @@ def object_cluster(
     min_points: int,
     max_base_height_m: float,
 ) -> FloatArray:
-    """The points [K, 3] of the largest DBSCAN cluster that stands on the table (its lowest
-    point at most ``max_base_height_m`` above it: not the gripper hovering in view).
+    """The points [K, 3] of the largest DBSCAN cluster that reaches down to within
+    ``max_base_height_m`` of the table: not the gripper hovering above the objects. (Not
+    "touching the table": seen over a gripper, an object may show its top face only.)
 
     points_m: [N, 3]; height_m: [N] height of each point above the table plane. Returns an
     empty array when no cluster qualifies."""
@@ -138,7 +139,9 @@ class Open3dCloudProcessor(Component):
         cluster_min_points: int = Field(10, gt=0, description="DBSCAN core point neighbours")
         min_object_points: int = Field(50, gt=0, description="fewer object points: error")
         max_base_height_m: float = Field(
-            0.02, gt=0, description="the object's lowest point is at most this above the table"
+            0.1,
+            gt=0,
+            description="a cluster whose lowest point is higher is not the object (the gripper)",
         )
         icp: bool = Field(True, description="register each new view onto the previous ones")
         icp_max_distance_m: float = Field(0.01, gt=0, description="ICP correspondence radius")

@@ -1,0 +1,1 @@
+"""Dual differentiable filter: state layout, process models and the filter."""

@@ -1,0 +1,273 @@
+"""Quasi-static pushing of one homogeneous link (Lynch, Maekawa and Tanie 1992), batched torch.
+
+Limit surface. The table friction of a link of mass m and friction coefficient f is
+approximated by the ellipsoid ``(fx² + fy²) / f_max² + M² / m_max² = 1`` about the CoM with
+``f_max = f m g`` and ``m_max = c f_max``. The characteristic length ``c`` is the mean distance
+of a footprint point from the CoM under uniform pressure, computed exactly for the fitted
+footprint box (half extents a1, a2) and the CoM offset (:func:`characteristic_length_m`). A twist
+(v, omega) at the CoM is produced by the wrench normal to the ellipsoid, so with
+``q = perp(contact)`` (omega x r = omega q) a point force F at the contact gives
+``v = k F, omega = k (q . F) / c²`` for some k >= 0.
+
+Contact. The pusher moves with velocity u at the contact (inward normal n, friction
+coefficient mu_r). Sticking: the contact point moves with the pusher, ``k A F = u`` with
+``A = I + q q^T / c²``; valid while F lies inside the friction cone (equivalently, u inside the
+motion cone). Otherwise the contact slips and F lies on the cone edge ``n ± mu_r t`` on the side
+where the sticking force left the cone (A is positive definite, so it maps cone sides onto
+motion-cone sides), with k set by the normal constraint ``n . v_contact = n . u``. A pusher
+moving out of the surface (``u . n <= 0``) does not move the object.
+
+The force of the pusher is the point of the limit surface for the resulting twist
+(:func:`limit_surface_force`); the tactile force is its negative.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+from vistac.plugins.filters.nets import perp, rotate
+from vistac.plugins.filters.state import Prediction, ProcessInput, StateLayout
+
+GRAVITY_MPS2 = 9.81
+_TINY = 1e-12
+
+
+class PushSolution(NamedTuple):
+    """Quasi-static motion of a pushed object (all vectors in the frame of the inputs).
+
+    velocity_mps: [..., 2] CoM velocity; omega_radps: [...]; force_n: [..., 2] force of the
+    pusher on the object; sticking: [...] bool (False also when there is no push).
+    """
+
+    velocity_mps: Tensor
+    omega_radps: Tensor
+    force_n: Tensor
+    sticking: Tensor
+
+
+def _dot(a: Tensor, b: Tensor) -> Tensor:
+    return (a * b).sum(-1)
+
+
+def _corner_integral(a_m: Tensor, b_m: Tensor) -> Tensor:
+    """∫0^a ∫0^b sqrt(x² + y²) dy dx (m³) for a, b >= 0."""
+    a, b = a_m.clamp(min=_TINY), b_m.clamp(min=_TINY)
+    d = torch.sqrt(a * a + b * b)
+    return (2.0 * a * b * d + a**3 * torch.asinh(b / a) + b**3 * torch.asinh(a / b)) / 6.0
+
+
+def characteristic_length_m(half_extents_m: Tensor, com_m: Tensor) -> Tensor:
+    """Mean distance from the CoM of a point of the footprint box under uniform pressure.
+
+    half_extents_m: [..., 2] (a1, a2); com_m: [..., 2] CoM in the box frame (inside the box).
+    Returns c [...] (m): the box is split at the CoM into four rectangles with a corner there.
+    """
+    a1, a2 = half_extents_m[..., 0], half_extents_m[..., 1]
+    cx, cy = com_m[..., 0], com_m[..., 1]
+    total = sum(
+        _corner_integral(a1 + sx * cx, a2 + sy * cy) for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)
+    )
+    return total / (4.0 * a1 * a2)
+
+
+def limit_surface_force(
+    velocity_mps: Tensor, omega_radps: Tensor, f_max_n: Tensor, c_m: Tensor
+) -> Tensor:
+    """Force [..., 2] of the wrench on the ellipsoidal limit surface that moves the object with
+    CoM twist (velocity [..., 2], omega [...]): ``f_max v / sqrt(|v|² + c² omega²)``; zero for
+    a still object."""
+    norm_sq = _dot(velocity_mps, velocity_mps) + (c_m * omega_radps) ** 2
+    moving = norm_sq > _TINY**2
+    scale = f_max_n / torch.sqrt(torch.where(moving, norm_sq, torch.ones_like(norm_sq)))
+    return torch.where(moving.unsqueeze(-1), scale.unsqueeze(-1) * velocity_mps, 0.0)
+
+
+def quasi_static_push(
+    contact_m: Tensor,
+    normal: Tensor,
+    pusher_velocity_mps: Tensor,
+    f_max_n: Tensor,
+    c_m: Tensor,
+    pusher_friction: float | Tensor,
+) -> PushSolution:
+    """Object twist at the CoM for a point push (see the module docstring).
+
+    contact_m: [..., 2] contact point relative to the CoM; normal: [..., 2] unit normal into
+    the object; pusher_velocity_mps: [..., 2]; f_max_n: [...] = f m g; c_m: [...] limit-surface
+    characteristic length (m_max = c f_max); pusher_friction: mu_r (scalar or [...]).
+    """
+    mu = torch.as_tensor(pusher_friction, dtype=contact_m.dtype)
+    q = perp(contact_m)
+    tangent = perp(normal)
+    c_sq = (c_m * c_m).unsqueeze(-1)
+    u = pusher_velocity_mps
+    # Sticking: v = k F = A^-1 u (Sherman-Morrison).
+    stick_v = u - q * _dot(q, u).unsqueeze(-1) / (c_sq + _dot(q, q).unsqueeze(-1))
+    normal_part, tangent_part = _dot(stick_v, normal), _dot(stick_v, tangent)
+    sticking = tangent_part.abs() <= mu * normal_part
+    side = torch.where(tangent_part >= 0.0, 1.0, -1.0).to(u.dtype)
+    edge = normal + (side * mu).unsqueeze(-1) * tangent
+    edge_normal_speed = _dot(normal, edge) + _dot(q, normal) * _dot(q, edge) / c_sq[..., 0]
+    k = _dot(u, normal) / edge_normal_speed.clamp(min=_TINY)
+    velocity = torch.where(sticking.unsqueeze(-1), stick_v, k.unsqueeze(-1) * edge)
+    pushing = _dot(u, normal) > 0.0
+    velocity = torch.where(pushing.unsqueeze(-1), velocity, 0.0)
+    omega = _dot(q, velocity) / c_sq[..., 0]
+    return PushSolution(
+        velocity_mps=velocity,
+        omega_radps=omega,
+        force_n=limit_surface_force(velocity, omega, f_max_n, c_m),
+        sticking=sticking & pushing,
+    )
+
+
+def line_contact(
+    point_m: Tensor,
+    normal: Tensor,
+    pusher_velocity_mps: Tensor,
+    com_m: Tensor,
+    half_extents_m: Tensor,
+    pad_half_width_m: float,
+) -> Tensor:
+    """Resultant contact point of a flat pad pressed against a box side (box frame).
+
+    The pad touches the side along the segment ``point + s t`` (``t = perp(normal)``) with
+    ``|s| <= pad_half_width_m``, cut to the side's extent. Its pressure resultant can act anywhere
+    on that segment, so the object translates without turning when the line through the CoM
+    along the pusher velocity meets the segment, at ``s* = -cross(point - com, u) /
+    cross(t, u)``; otherwise it turns about the segment's end nearest that line. Returns the
+    point ``point + clamp(s*) t`` [..., 2] for the point-contact solution (a line contact of
+    width 0 gives ``point``). Lynch's point model alone turns offset pushes about twice as fast
+    as the simulator's flat pad does.
+    """
+    if pad_half_width_m <= 0.0:
+        return point_m
+    tangent = perp(normal)
+    relative = point_m - com_m
+    u = pusher_velocity_mps
+    cross_tu = tangent[..., 0] * u[..., 1] - tangent[..., 1] * u[..., 0]
+    cross_pu = relative[..., 0] * u[..., 1] - relative[..., 1] * u[..., 0]
+    safe = torch.where(cross_tu.abs() > _TINY, cross_tu, torch.full_like(cross_tu, _TINY))
+    target = -cross_pu / safe
+    along = _dot(point_m, tangent)
+    side_half_m = _dot(half_extents_m, tangent.abs())
+    low = torch.maximum(torch.full_like(along, -pad_half_width_m), -side_half_m - along)
+    high = torch.minimum(torch.full_like(along, pad_half_width_m), side_half_m - along)
+    high = torch.maximum(high, low)
+    s = torch.minimum(torch.maximum(target, low), high)
+    return point_m + s.unsqueeze(-1) * tangent
+
+
+def box_contact(point_m: Tensor, half_extents_m: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Where a point touches an axis-aligned box centred at the origin.
+
+    point_m: [..., 2]; half_extents_m: [..., 2]. Returns (contact point on the side the point
+    is most outside of [..., 2], inward unit normal of that side [..., 2], distance of the point
+    outside the box [...] (0 inside)).
+    """
+    excess = point_m.abs() - half_extents_m
+    outside = torch.linalg.vector_norm(excess.clamp(min=0.0), dim=-1)
+    on_x = excess[..., 0] >= excess[..., 1]
+    sign = torch.where(point_m >= 0.0, 1.0, -1.0).to(point_m.dtype)
+    clamped = torch.maximum(torch.minimum(point_m, half_extents_m), -half_extents_m)
+    x_side = torch.stack([sign[..., 0] * half_extents_m[..., 0], clamped[..., 1]], -1)
+    y_side = torch.stack([clamped[..., 0], sign[..., 1] * half_extents_m[..., 1]], -1)
+    zero = torch.zeros_like(sign[..., 0])
+    x_normal = torch.stack([-sign[..., 0], zero], -1)
+    y_normal = torch.stack([zero, -sign[..., 1]], -1)
+    on_x = on_x.unsqueeze(-1)
+    return (
+        torch.where(on_x, x_side, y_side),
+        torch.where(on_x, x_normal, y_normal),
+        outside,
+    )
+
+
+@dataclass(frozen=True)
+class PushSettings:
+    """Fixed quantities of the analytical model."""
+
+    pusher_friction: float
+    """mu_r between the finger pad and the object."""
+    pusher_offset_m: float
+    """Distance from the TCP to the leading pad face along the push direction."""
+    contact_margin_m: float
+    """The pusher touches the link when its point is at most this far outside the box."""
+    pad_half_width_m: float = 0.012
+    """Half width of the flat pad face across the push direction (the simulated gripper's pad
+    is 24 mm wide, ``PAD_HALF_SIZE_M[1]``); 0 for a point pusher. See :func:`line_contact`."""
+
+
+def analytical_step(
+    states: Tensor, inputs: ProcessInput, dt_s: float, settings: PushSettings
+) -> tuple[Tensor, Tensor]:
+    """One step of a one-link object pushed (quasi-statically) or pulled (rigidly).
+
+    states: [..., C, 10]. Returns (next pose [..., C, 6] of the link frame: x, y, theta and the
+    frame origin's velocity vx, vy, omega; force of the object on the fingers [..., C, 2]),
+    world frame. Integration: the CoM moves by v dt and the link turns by omega dt about it.
+    """
+    layout = StateLayout(1)
+    pose = layout.link_pose(states)[..., 0, :]
+    mass, friction = layout.link_parameters(states)[..., 0, :2].unbind(-1)
+    com_link = layout.link_parameters(states)[..., 0, 2:]
+    theta = pose[..., 2]
+    com_world = pose[..., :2] + rotate(com_link, theta)
+
+    tcp = inputs.tcp.unsqueeze(-2)  # [..., 1, 6]
+    pd = inputs.pd_rad.unsqueeze(-1)
+    half_extents = inputs.link_size_m[..., 0, :].unsqueeze(-2)
+    c = characteristic_length_m(half_extents, com_link)
+    f_max = friction * mass * GRAVITY_MPS2
+
+    # Push: the pad face point, in the link frame.
+    direction = torch.stack([torch.cos(pd), torch.sin(pd)], -1)
+    pusher = tcp[..., :2] + settings.pusher_offset_m * direction
+    pusher_velocity = tcp[..., 3:5] + tcp[..., 5:6] * perp(pusher - tcp[..., :2])
+    point, normal, outside = box_contact(rotate(pusher - pose[..., :2], -theta), half_extents)
+    local_velocity = rotate(pusher_velocity, -theta)
+    point = line_contact(
+        point, normal, local_velocity, com_link, half_extents, settings.pad_half_width_m
+    )
+    push = quasi_static_push(
+        point - com_link,
+        normal,
+        local_velocity,
+        f_max,
+        c,
+        settings.pusher_friction,
+    )
+    touching = (outside <= settings.contact_margin_m).unsqueeze(-1)
+    push_velocity = torch.where(touching, rotate(push.velocity_mps, theta), 0.0)
+    push_omega = torch.where(touching[..., 0], push.omega_radps, 0.0)
+
+    # Pull: the grasped link moves with the gripper.
+    pull_omega = tcp[..., 5].expand_as(theta)
+    pull_velocity = tcp[..., 3:5] + pull_omega.unsqueeze(-1) * perp(com_world - tcp[..., :2])
+
+    pulling = (inputs.is_pull.unsqueeze(-1) > 0.5).expand_as(theta)
+    velocity = torch.where(pulling.unsqueeze(-1), pull_velocity, push_velocity)
+    omega = torch.where(pulling, pull_omega, push_omega)
+    force = -limit_surface_force(velocity, omega, f_max, c)
+
+    next_theta = theta + omega * dt_s
+    com_offset = rotate(com_link, next_theta)
+    next_xy = com_world + velocity * dt_s - com_offset
+    origin_velocity = velocity - omega.unsqueeze(-1) * perp(com_offset)
+    next_pose = torch.cat(
+        [next_xy, next_theta.unsqueeze(-1), origin_velocity, omega[..., None]], -1
+    )
+    return next_pose, force
+
+
+def analytical_prediction(
+    states: Tensor, inputs: ProcessInput, dt_s: float, settings: PushSettings, variance: Tensor
+) -> Prediction:
+    """:func:`analytical_step` as a Prediction with the fixed process variance [6]."""
+    pose, force = analytical_step(states, inputs, dt_s, settings)
+    return Prediction(
+        pose=pose, force_n=force, process_var=variance.expand(*inputs.tcp.shape[:-1], 6)
+    )

@@ -1,0 +1,233 @@
+"""``filters.dual``: the dual differentiable filter as a skill component (``Filter`` protocol).
+
+``initialise`` builds the joint belief from the shape estimate (link poses from the fitted
+superquadrics, zero twist, a configurable prior over the parameters). ``update`` runs one
+filter step per recorded control step of an episode: the process model of the skill
+(``filters.gnn``, ``filters.ff`` or ``filters.analytical``) predicts, and the depth image
+projected from the segmented initial cloud plus the fingertip force are the observation.
+The belief is carried from one interaction to the next.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
+from vistac.errors import ConfigError, DataError
+from vistac.plugins.filters.dual import Belief, DualFilter
+from vistac.plugins.filters.models import load_checkpoint
+from vistac.plugins.filters.observation import (
+    DepthProjector,
+    ObsNoiseNet,
+    ProjectionObservationModel,
+    observation_vector,
+)
+from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
+from vistac.protocols import Episode, Scene, StepObservation
+from vistac.types import FloatArray, GaussianBelief, ShapeEstimate, action_point
+
+log = logging.getLogger(__name__)
+
+
+class Prior(BaseModel):
+    """Initial mean and standard deviation of each parameter family."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    mass_kg: tuple[float, float] = (0.9, 0.4)
+    friction: tuple[float, float] = (0.3, 0.12)
+    com_m: tuple[float, float] = (0.0, 0.01)
+    joint_friction_nm: tuple[float, float] = (0.25, 0.15)
+    position_m: float = Field(0.005, gt=0, description="std of the initial link positions")
+    angle_rad: float = Field(0.05, gt=0, description="std of the initial link angles")
+    velocity_mps: float = Field(0.002, gt=0, description="std of the initial twist (m/s, rad/s)")
+
+
+def link_boxes(shape: ShapeEstimate) -> tuple[FloatArray, FloatArray]:
+    """(poses [L, 3] = (x, y, theta) of the fitted links, half extents [L, 2] (a1, a2))."""
+    sizes = np.array([link.scale_m[:2] for link in shape.links])
+    return np.asarray(shape.initial_poses, dtype=np.float64), sizes
+
+
+def relative_poses(poses: FloatArray) -> FloatArray:
+    """Each pose [L, 3] relative to the first, in the first's frame: [L, 3]."""
+    c, s = np.cos(poses[0, 2]), np.sin(poses[0, 2])
+    rel = poses[:, :2] - poses[0, :2]
+    return np.column_stack(
+        [c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], poses[:, 2] - poses[0, 2]]
+    )
+
+
+def nearest_link(points_m: FloatArray, poses: FloatArray, sizes: FloatArray) -> FloatArray:
+    """Index [N] of the link whose footprint box (size-normalised) is nearest to each point."""
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    dx = points_m[:, None, 0] - poses[None, :, 0]
+    dy = points_m[:, None, 1] - poses[None, :, 1]
+    local_x, local_y = c * dx + s * dy, -s * dx + c * dy
+    score = np.maximum(np.abs(local_x) / sizes[:, 0], np.abs(local_y) / sizes[:, 1])
+    return np.asarray(score.argmin(axis=1))
+
+
+class DualFilterComponent(Component):
+    """Implements the ``Filter`` protocol with :class:`DualFilter` (paper 1, III-F)."""
+
+    kind = "filter"
+
+    class Config(ComponentConfig):
+        sigma_points: int = Field(100, ge=2, description="C, Monte-Carlo sigma points")
+        liu_west_delta: float = Field(0.97, gt=1 / 3, le=1, description="kernel discount")
+        noise_checkpoint: SkillPath | None = Field(
+            None, description="ObsNoiseNet state dict from `vistac train`; None: defaults"
+        )
+        prior: Prior = Field(default_factory=Prior)
+        depth_size_px: int = Field(64, gt=0, description="side of the observed depth image")
+        splat_px: int = Field(2, ge=1, description="pixels each projected point covers")
+        between_episodes_std_m: float = Field(
+            0.002, ge=0, description="pose std added between interactions (m, and rad / 10)"
+        )
+
+    def __init__(self, config: Config, ctx: ComponentContext) -> None:
+        super().__init__(config, ctx)
+        self.config: DualFilterComponent.Config = config
+        self.model = ctx.find("process_model")
+        if self.model is None:
+            raise ConfigError(
+                "filters.dual needs a process_model component in the skill "
+                "(filters.gnn, filters.ff or filters.analytical)"
+            )
+        self.noise_net = ObsNoiseNet(height_px=config.depth_size_px, width_px=config.depth_size_px)
+        if config.noise_checkpoint is not None:
+            load_checkpoint(self.noise_net, config.noise_checkpoint, "filters.dual", {})
+        self.noise_net.to(DTYPE)
+        self.generator = torch.Generator().manual_seed(int(ctx.rng("filter").integers(2**31)))
+        self.layout: StateLayout | None = None
+        self.belief: Belief | None = None
+        self.shape: ShapeEstimate | None = None
+        self.history: list[dict[str, Any]] = []
+
+    # -- Filter protocol ------------------------------------------------------------------
+
+    def initialise(self, scene: Scene) -> GaussianBelief:
+        if scene.shape is None:
+            raise DataError("filters.dual: no shape estimate; run `look` with a shape estimator")
+        self.shape = scene.shape
+        poses, _ = link_boxes(scene.shape)
+        self.layout = StateLayout(len(poses))
+        if self.model.n_links not in (None, self.layout.n_links):
+            raise ConfigError(
+                f"the process model handles {self.model.n_links} link(s) but the object has "
+                f"{self.layout.n_links}; use filters.gnn or a model trained for this many links"
+            )
+        mean, std = self._prior_mean_std(poses)
+        self.belief = Belief(
+            torch.as_tensor(mean, dtype=DTYPE), torch.diag(torch.as_tensor(std, dtype=DTYPE) ** 2)
+        )
+        return self._public()
+
+    def update(self, episode: Episode) -> GaussianBelief:
+        if self.belief is None or self.layout is None or self.shape is None:
+            raise DataError("filters.dual: update before initialise")
+        steps = [step for step in episode.steps if step.depth is not None]
+        if not steps:
+            raise DataError("filters.dual: the episode has no depth frames; record_depth: true")
+        self._inflate_pose()
+        filter_ = self._filter(steps[0])
+        inputs = self._inputs(episode)
+        dt_s = float(np.median(np.diff([s.time_s for s in steps]))) if len(steps) > 1 else 1 / 15
+        with torch.no_grad():
+            for step in steps:
+                observation = self._observation(step, filter_)
+                self.belief = filter_.step(
+                    self.belief, inputs(step), dt_s, observation, self.generator
+                )
+                self.history.append({"time_s": step.time_s, **self._public().as_dict()})
+        return self._public()
+
+    # -- helpers --------------------------------------------------------------------------
+
+    def _prior_mean_std(self, poses: FloatArray) -> tuple[FloatArray, FloatArray]:
+        assert self.layout is not None
+        prior, links = self.config.prior, len(poses)
+        pose_mean = np.concatenate([np.concatenate([p, np.zeros(3)]) for p in poses])
+        pose_std = np.tile(
+            [prior.position_m, prior.position_m, prior.angle_rad] + [prior.velocity_mps] * 3, links
+        )
+        link_mean = np.tile([prior.mass_kg[0], prior.friction[0], *[prior.com_m[0]] * 2], links)
+        link_std = np.tile([prior.mass_kg[1], prior.friction[1], *[prior.com_m[1]] * 2], links)
+        joints = self.layout.n_joints
+        mean = np.concatenate([pose_mean, link_mean, [prior.joint_friction_nm[0]] * joints])
+        std = np.concatenate([pose_std, link_std, [prior.joint_friction_nm[1]] * joints])
+        return mean, std
+
+    def _inflate_pose(self) -> None:
+        """Between interactions the gripper leaves and comes back: widen the pose belief."""
+        assert self.belief is not None and self.layout is not None
+        std_m = self.config.between_episodes_std_m
+        extra = torch.zeros(self.layout.size, dtype=DTYPE)
+        extra[self.layout.pose_slice] = torch.tensor([std_m, std_m, std_m * 10, 0, 0, 0]).repeat(
+            self.layout.n_links
+        )
+        twist = torch.zeros(self.layout.size, dtype=DTYPE)
+        twist[self.layout.pose_slice] = torch.tensor([0, 0, 0, 1.0, 1.0, 1.0]).repeat(
+            self.layout.n_links
+        )
+        mean = self.belief.mean * (1 - twist)  # the object is at rest again
+        self.belief = Belief(mean, self.belief.cov + torch.diag(extra**2))
+
+    def _filter(self, first: StepObservation) -> DualFilter:
+        assert self.shape is not None and self.layout is not None and first.depth is not None
+        poses, sizes = link_boxes(self.shape)
+        points = np.asarray(self.shape.cloud.points_m)
+        size = self.config.depth_size_px
+        frame = first.depth
+        projector = DepthProjector(
+            points, nearest_link(points, poses, sizes), poses,
+            frame.intrinsics, frame.world_from_camera,
+            width_px=size, height_px=size, splat_px=self.config.splat_px,
+        )  # fmt: skip
+        self.background_m = projector.background_m
+        observation = ProjectionObservationModel(self.layout, projector, self.noise_net)
+        return DualFilter(
+            self.layout, self.model, observation, self.config.sigma_points,
+            self.config.liu_west_delta,
+        )  # fmt: skip
+
+    def _inputs(self, episode: Episode) -> Any:
+        """A function StepObservation -> ProcessInput for this episode's action."""
+        assert self.shape is not None and self.belief is not None and self.layout is not None
+        _, sizes = link_boxes(self.shape)
+        poses = self.layout.link_pose(self.belief.mean).numpy()[:, :3]
+        point = action_point(episode.action)[None, :2]
+        link = int(nearest_link(np.column_stack([point, [[0.0]]]), poses, sizes)[0])
+        fixed = {
+            "pd_rad": torch.tensor(episode.action.pd_rad, dtype=DTYPE),
+            "is_pull": torch.tensor(float(episode.action.kind == "pull"), dtype=DTYPE),
+            "link": torch.tensor(link),
+            "link_size_m": torch.as_tensor(sizes, dtype=DTYPE),
+            "link_offset": torch.as_tensor(relative_poses(poses), dtype=DTYPE),
+        }
+
+        def inputs(step: StepObservation) -> ProcessInput:
+            pose, twist = step.arm.pose, step.arm.twist
+            tcp = torch.as_tensor(
+                [pose[0], pose[1], pose[3], twist[0], twist[1], twist[3]], dtype=DTYPE
+            )
+            return ProcessInput(tcp=tcp, **fixed)
+
+        return inputs
+
+    def _observation(self, step: StepObservation, filter_: DualFilter) -> torch.Tensor:
+        assert step.depth is not None
+        depth = torch.as_tensor(step.depth.depth_m, dtype=DTYPE)
+        force = torch.as_tensor(step.tactile.force_n.sum(axis=0), dtype=DTYPE)
+        return observation_vector(depth, force, self.background_m)
+
+    def _public(self) -> GaussianBelief:
+        assert self.belief is not None and self.layout is not None
+        cov = self.belief.cov.numpy()
+        return GaussianBelief(
+            self.belief.mean.numpy().copy(), 0.5 * (cov + cov.T), self.layout.names
+        )

@@ -1,0 +1,215 @@
+"""Recorded interactions as filter training and evaluation data.
+
+A run of a collection skill writes ``episodes/NNNN/{data.npz, meta.json}`` (see
+``vistac.recording``). :func:`load_trajectories` reads them back as :class:`Trajectory`
+objects with the true state per step (poses from the simulator, twists by central
+differences), the robot input per step and the observations.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+from vistac.errors import DataError
+from vistac.objects import ObjectSpec, link_frames, prism_surface_points, to_world_xy
+from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
+from vistac.types import CameraIntrinsics, FloatArray
+
+log = logging.getLogger(__name__)
+
+CLOUD_POINTS = 2000
+"""Points of the object cloud the depth projector moves with the links."""
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """One recorded push or pull at the control rate (T steps, L links).
+
+    poses: [T, L, 3] true (x, y, theta); twists: [T, L, 3] (vx, vy, omega); tcp: [T, 6];
+    force_n: [T, 2] total force on the fingers (world x, y); depth_m: [T, H, W] or None with
+    camera_pose [T, 4, 4] and intrinsics; parameters: true values by belief entry name.
+    """
+
+    source: str
+    spec: ObjectSpec
+    kind: str
+    pd_rad: float
+    link: int
+    dt_s: float
+    poses: FloatArray
+    twists: FloatArray
+    tcp: FloatArray
+    force_n: FloatArray
+    depth_m: FloatArray | None
+    camera_pose: FloatArray | None
+    intrinsics: CameraIntrinsics | None
+    parameters: dict[str, float]
+
+    @property
+    def steps(self) -> int:
+        return len(self.poses)
+
+    @property
+    def n_links(self) -> int:
+        return len(self.spec.links)
+
+    def window(self, start: int, stop: int) -> Trajectory:
+        """Steps ``start:stop`` as a trajectory of their own."""
+        cut = slice(start, stop)
+        return Trajectory(
+            self.source, self.spec, self.kind, self.pd_rad, self.link, self.dt_s,
+            self.poses[cut], self.twists[cut], self.tcp[cut], self.force_n[cut],
+            None if self.depth_m is None else self.depth_m[cut],
+            None if self.camera_pose is None else self.camera_pose[cut],
+            self.intrinsics, self.parameters,
+        )  # fmt: skip
+
+
+def unwrapped_twist(poses: FloatArray, dt_s: float) -> FloatArray:
+    """Central-difference velocities [T, L, 3] of poses [T, L, 3] (theta unwrapped)."""
+    unwrapped = poses.copy()
+    unwrapped[..., 2] = np.unwrap(poses[..., 2], axis=0)
+    if len(poses) < 2:
+        return np.zeros_like(poses)
+    return np.gradient(unwrapped, dt_s, axis=0)
+
+
+def _episode(folder: Path) -> Trajectory | None:
+    meta = json.loads((folder / "meta.json").read_text(encoding="utf-8"))
+    truth = meta.get("ground_truth")
+    if not truth or "object" not in truth:
+        raise DataError(f"{folder}: no ground truth; record training data in simulation")
+    with np.load(folder / "data.npz") as data:
+        arrays = {name: data[name] for name in data.files}
+    if "object_pose" not in arrays or len(arrays["time_s"]) < 3:
+        return None
+    time_s = arrays["time_s"]
+    dt_s = float(np.median(np.diff(time_s)))
+    poses = arrays["object_pose"]
+    arm_pose, arm_twist = arrays["arm_pose"], arrays["arm_twist"]
+    intrinsics = None
+    if "depth_intrinsics" in arrays:
+        fx, fy, cx, cy = arrays["depth_intrinsics"][0]
+        height, width = arrays["depth_m"].shape[1:]
+        intrinsics = CameraIntrinsics(width, height, fx, fy, cx, cy)
+    action = meta["action"]
+    return Trajectory(
+        source=str(folder),
+        spec=ObjectSpec.model_validate(truth["object"]),
+        kind=action["kind"],
+        pd_rad=float(action["pd_rad"]),
+        link=int(action.get("link", 0)),
+        dt_s=dt_s,
+        poses=poses,
+        twists=unwrapped_twist(poses, dt_s),
+        tcp=np.column_stack([arm_pose[:, [0, 1, 3]], arm_twist[:, [0, 1, 3]]]),
+        force_n=arrays["tactile_force_n"].sum(axis=1),
+        depth_m=arrays.get("depth_m"),
+        camera_pose=arrays.get("camera_pose"),
+        intrinsics=intrinsics,
+        parameters=dict(truth["parameters"]),
+    )
+
+
+def load_trajectories(roots: list[Path], kind: str | None = None) -> list[Trajectory]:
+    """Every recorded episode under the run folders ``roots`` (of one interaction ``kind``
+    when given). DataError when a folder holds none."""
+    trajectories: list[Trajectory] = []
+    for root in roots:
+        folders = sorted(p for p in (root / "episodes").glob("[0-9]*") if p.is_dir())
+        if not folders:
+            raise DataError(f"{root}: no episodes/NNNN folders; is this a run output folder?")
+        for folder in folders:
+            trajectory = _episode(folder)
+            if trajectory is not None and (kind is None or trajectory.kind == kind):
+                trajectories.append(trajectory)
+    return trajectories
+
+
+# ---------------------------------------------------------------------------------------------
+# Tensors for the filter
+
+
+def link_geometry(spec: ObjectSpec) -> tuple[FloatArray, FloatArray]:
+    """(link_size_m [L, 2] half extents of each footprint, link_offset [L, 3] initial pose
+    of each link relative to link 0, in link 0's frame)."""
+    size = np.array([np.abs(link.polygon()).max(axis=0) for link in spec.links])
+    frames = link_frames(spec)
+    theta0 = frames[0, 2]
+    c, s = np.cos(theta0), np.sin(theta0)
+    rel = frames[:, :2] - frames[0, :2]
+    offset = np.column_stack(
+        [c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], frames[:, 2] - theta0]
+    )
+    return size, offset
+
+
+def true_states(trajectory: Trajectory, layout: StateLayout) -> Tensor:
+    """The true joint state per step: [T, n]."""
+    pose_twist = np.concatenate([trajectory.poses, trajectory.twists], axis=-1)  # [T, L, 6]
+    params = np.array([trajectory.parameters.get(name, 0.0) for name in parameter_names(layout)])
+    if layout.n_joints and trajectory.spec.type == "heterogeneous":
+        params[-layout.n_joints :] = 1.0  # a welded joint: "rigid", as paper 1 IV-A sets it
+    states = np.concatenate(
+        [pose_twist.reshape(trajectory.steps, -1), np.tile(params, (trajectory.steps, 1))], axis=1
+    )
+    return torch.as_tensor(states, dtype=DTYPE)
+
+
+def parameter_names(layout: StateLayout) -> tuple[str, ...]:
+    return layout.names[layout.n_pose :]
+
+
+def process_inputs(trajectories: list[Trajectory]) -> list[ProcessInput]:
+    """Per step t, one ProcessInput batched over the trajectories (same length T)."""
+    sizes, offsets = zip(*(link_geometry(t.spec) for t in trajectories), strict=True)
+    link_size = torch.as_tensor(np.stack(sizes), dtype=DTYPE)
+    link_offset = torch.as_tensor(np.stack(offsets), dtype=DTYPE)
+    tcp = torch.as_tensor(np.stack([t.tcp for t in trajectories]), dtype=DTYPE)  # [B, T, 6]
+    pd = torch.as_tensor([t.pd_rad for t in trajectories], dtype=DTYPE)
+    pull = torch.as_tensor([float(t.kind == "pull") for t in trajectories], dtype=DTYPE)
+    link = torch.as_tensor([t.link for t in trajectories], dtype=torch.int64)
+    return [
+        ProcessInput(tcp[:, step], pd, pull, link, link_size, link_offset)
+        for step in range(tcp.shape[1])
+    ]
+
+
+def object_cloud(
+    spec: ObjectSpec, rng: np.random.Generator, count: int = CLOUD_POINTS
+) -> tuple[FloatArray, FloatArray]:
+    """The object's visible surface (all but the bottom faces) at its initial pose: points
+    [P, 3] (world, m) and their link index [P]."""
+    per_link = max(1, count // len(spec.links))
+    points, owners = [], []
+    for index, (link, pose) in enumerate(zip(spec.links, link_frames(spec), strict=True)):
+        surface = prism_surface_points(link.polygon(), link.height_m, 2 * per_link, rng)
+        surface = surface[surface[:, 2] > 1e-6][:per_link]
+        points.append(to_world_xy(surface, pose))
+        owners.append(np.full(len(surface), index))
+    return np.concatenate(points), np.concatenate(owners)
+
+
+def stack_equal_length(trajectories: list[Trajectory], steps: int) -> list[Trajectory]:
+    """Cut every trajectory into consecutive windows of ``steps`` steps (the rest dropped)."""
+    windows = []
+    for trajectory in trajectories:
+        for start in range(0, trajectory.steps - steps + 1, steps):
+            windows.append(trajectory.window(start, start + steps))
+    return windows
+
+
+def describe(trajectories: list[Trajectory]) -> dict[str, Any]:
+    """Counts by object type and interaction, for logs and reports."""
+    counts: dict[str, int] = {}
+    for trajectory in trajectories:
+        key = f"{trajectory.spec.type}/{trajectory.kind}"
+        counts[key] = counts.get(key, 0) + 1
+    return {"trajectories": len(trajectories), "by_type": counts}

@@ -1,0 +1,568 @@
+"""Numerical core of the dual differentiable filter (paper 1, III-F, eq. 19-36).
+
+The belief over the joint state ``s = (psi, phi)`` (pose/twist block, then parameters; see
+``state.StateLayout``) is one Gaussian. A step has two halves:
+
+- **Predict** (eq. 21-26): C Monte-Carlo sigma points ``mu + L eps`` (``L`` the Cholesky
+  factor). Points that break the physical constraints reach the process model as a projected
+  (clamped) copy, but every point keeps its own unprojected parameters in the moments, so the
+  parameter variance is preserved. Parameters stay constant (eq. 23), the process noise is
+  added by reparameterisation (eq. 24), and the moments use weights 1/C (eq. 25-26).
+- **Update**: the parameters by importance weights (eq. 31, in log space, diagonal R) and
+  Liu-West kernel smoothing in its textbook form (``a = (3 delta - 1) / (2 delta)``,
+  ``h^2 = 1 - a^2``; the paper's eq. 33 and ``a = h = 0.01`` are not used); the kernel mixture's
+  covariance, ``a^2 V + h^2 V``, equals the weighted particle covariance ``V``. Then the pose,
+  conditioned on the updated parameter mean (eq. 34-35), by an unscented update whose
+  innovation covariance ``S = U W U^T + R`` is only ever inverted through the Woodbury
+  identity in sigma-point space (k = 4098 observations in practice, never a k x k matrix).
+- **Joint posterior** (eq. 36): the product of the parameter Gaussian ``N(mu_phi, S_phi)`` and
+  the updated conditional pose Gaussian ``N(a + B' phi, S_psi|phi)``. The paper keeps the
+  cross-covariance constant, which can make the joint covariance indefinite; here the
+  regression coefficient ``B = S_psi,phi S_phi^-1`` of the prior is carried through the
+  update as ``B' = S_psi|phi,new S_psi|phi^-1 B`` (= ``(I - K H) B`` for a linear observation,
+  the statistical linearisation otherwise). The product of the two factors is SPD, and for a
+  linear-Gaussian system the step equals the Kalman filter on the joint state.
+
+All math is torch float64, differentiable end to end, with optional leading batch dimensions.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+from torch import Tensor
+from vistac.errors import DataError
+from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput, StateLayout
+
+logger = logging.getLogger(__name__)
+
+POSITIVE_FLOOR = 1e-6
+"""Value a non-positive mass (kg) or table friction coefficient is projected to."""
+_JITTER_START = 1e-12
+"""First diagonal jitter tried by ``cholesky_safe``, relative to the mean diagonal."""
+_JITTER_GROWTH = 10.0
+_JITTER_TRIES = 10
+
+
+class ProcessModel(Protocol):
+    """Predicts the next pose block of C sigma points (eq. 22)."""
+
+    def predict(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
+        """states: [..., C, n], all feasible -> Prediction with [..., C, ...] fields."""
+        ...
+
+
+class ObservationModel(Protocol):
+    """Expected observations of sigma points and the observation noise (eq. 27-30)."""
+
+    def expected(self, states: Tensor, force_n: Tensor) -> Tensor:
+        """states: [..., C, n] (pose block used), force_n: [..., C, 2] -> [..., C, k]."""
+        ...
+
+    def noise_var(self, observation: Tensor) -> Tensor:
+        """observation: [..., k] -> diagonal of R, [..., k], positive."""
+        ...
+
+
+UNEXPLAINED_VAR = 1e6
+"""Noise variance given to observation entries the model cannot explain (``unexplained``):
+large enough that they carry no weight, finite so that every check still applies."""
+
+
+@dataclass(frozen=True)
+class Belief:
+    """Gaussian belief over the joint state: mean [..., n], cov [..., n, n]."""
+
+    mean: Tensor
+    cov: Tensor
+
+    def check_finite(self, names: Sequence[str] | None = None) -> None:
+        """Raise DataError naming the first non-finite entry (by ``names`` when given)."""
+        require_finite(self.mean, "belief mean", names)
+        require_finite(self.cov, "belief covariance", names, entry_dims=2)
+
+
+def require_finite(
+    values: Tensor, what: str, names: Sequence[str] | None = None, entry_dims: int = 1
+) -> None:
+    """Raise DataError if ``values`` has a NaN or inf; the message names the first one.
+
+    The last ``entry_dims`` dimensions index entries (named by ``names`` when given), the
+    leading ones are batch (and sigma point) dimensions.
+    """
+    bad = ~torch.isfinite(values.detach())
+    if not bool(bad.any()):
+        return
+    index = [int(i) for i in bad.nonzero()[0]]
+    leading, entry = index[: len(index) - entry_dims], index[len(index) - entry_dims :]
+    labels = [names[i] if names is not None else str(i) for i in entry]
+    where = f" at leading index {tuple(leading)}" if leading else ""
+    value = float(values.detach()[tuple(index)])
+    raise DataError(f"{what} is not finite: {what}[{', '.join(labels)}] = {value}{where}")
+
+
+def require_finite_summary(summary: Tensor, values: Tensor, what: str) -> None:
+    """Cheap check of a large tensor through a ``summary`` it propagates NaN and inf into.
+
+    Only when the summary is not finite is ``values`` searched (DataError naming the entry);
+    a finite ``values`` with a non-finite summary is reported as an overflow.
+    """
+    if bool(torch.isfinite(summary.detach()).all()):
+        return
+    require_finite(values, what)
+    raise DataError(f"{what} overflows: its likelihood or mean is not finite")
+
+
+def symmetrize(matrix: Tensor) -> Tensor:
+    """[..., d, d] -> (A + A^T) / 2, exactly symmetric."""
+    return 0.5 * (matrix + matrix.transpose(-1, -2))
+
+
+def cholesky_safe(cov: Tensor) -> Tensor:
+    """Lower Cholesky factor of the symmetrised ``cov`` [..., d, d] -> [..., d, d].
+
+    Where the factorisation fails, a diagonal jitter relative to the mean diagonal is added
+    (only to the failing batch elements), growing tenfold per try. Raises DataError if the
+    matrix is not finite or still fails.
+    """
+    require_finite(cov, "covariance", entry_dims=2)
+    sym = symmetrize(cov)
+    factor, info = torch.linalg.cholesky_ex(sym)
+    failed = info != 0
+    if not bool(failed.any()):
+        return factor
+    eye = torch.eye(sym.shape[-1], dtype=sym.dtype, device=sym.device)
+    scale = sym.diagonal(dim1=-2, dim2=-1).abs().mean(-1)
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    jitter = _JITTER_START
+    for _ in range(_JITTER_TRIES):
+        shift = (jitter * scale * failed.to(sym.dtype))[..., None, None] * eye
+        factor, info = torch.linalg.cholesky_ex(sym + shift)
+        if not bool((info != 0).any()):
+            logger.debug("cholesky needed a relative jitter of %.1e", jitter)
+            return factor
+        jitter *= _JITTER_GROWTH
+    raise DataError(f"covariance is not positive definite even with a relative jitter {jitter}")
+
+
+def sigma_points_from_noise(belief: Belief, noise: Tensor) -> Tensor:
+    """Reparameterised points ``mu + L eps`` (eq. 21): noise [..., C, n] -> [..., C, n]."""
+    factor = cholesky_safe(belief.cov)
+    return belief.mean.unsqueeze(-2) + noise @ factor.transpose(-1, -2)
+
+
+def _standard_normal(
+    shape: tuple[int, ...], generator: torch.Generator, device: torch.device
+) -> Tensor:
+    """Float64 N(0, 1) draws of ``shape`` from ``generator``."""
+    return torch.randn(shape, generator=generator, dtype=DTYPE, device=device)
+
+
+def sample_sigma_points(belief: Belief, count: int, generator: torch.Generator) -> Tensor:
+    """C Monte-Carlo sigma points of the belief: -> [..., C, n]."""
+    mean = belief.mean
+    shape = (*mean.shape[:-1], count, mean.shape[-1])
+    return sigma_points_from_noise(belief, _standard_normal(shape, generator, mean.device))
+
+
+def feasible(states: Tensor, layout: StateLayout, link_size_m: Tensor) -> Tensor:
+    """Physical constraints per point: states [..., C, n], link_size_m [..., L, 2] -> [..., C].
+
+    m > 0, f > 0, f_j >= 0, and the CoM inside the link's footprint box |com_x| <= a1,
+    |com_y| <= a2.
+    """
+    params = layout.link_parameters(states)
+    half_extent_m = link_size_m.unsqueeze(-3)
+    links_ok = (params[..., 0] > 0) & (params[..., 1] > 0)
+    links_ok = links_ok & (params[..., 2:].abs() <= half_extent_m).all(-1)
+    joints_ok = (layout.joint_friction(states) >= 0).all(-1)
+    return links_ok.all(-1) & joints_ok
+
+
+def project_feasible(states: Tensor, layout: StateLayout, link_size_m: Tensor) -> Tensor:
+    """Projected copy of states [..., C, n] on the feasible set; feasible points are unchanged.
+
+    Non-positive m and f become ``POSITIVE_FLOOR``, negative f_j become 0, the CoM is clamped
+    to the footprint box of ``link_size_m`` [..., L, 2].
+    """
+    params = layout.link_parameters(states)
+    half_extent_m = link_size_m.unsqueeze(-3)
+    mass_friction = params[..., :2]
+    mass_friction = torch.where(mass_friction > 0, mass_friction, POSITIVE_FLOOR)
+    com_m = torch.maximum(torch.minimum(params[..., 2:], half_extent_m), -half_extent_m)
+    links = torch.cat([mass_friction, com_m], -1).flatten(-2)
+    joints = layout.joint_friction(states).clamp_min(0.0)
+    return torch.cat([states[..., layout.pose_slice], links, joints], -1)
+
+
+def weighted_moments(points: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+    """points [..., C, d], normalised weights [..., C] -> mean [..., d], cov [..., d, d]."""
+    mean = (weights.unsqueeze(-1) * points).sum(-2)
+    deviation = points - mean.unsqueeze(-2)
+    cov = (weights.unsqueeze(-1) * deviation).transpose(-1, -2) @ deviation
+    return mean, symmetrize(cov)
+
+
+def liu_west(particles: Tensor, weights: Tensor, delta: float) -> tuple[Tensor, Tensor]:
+    """Moments of the Liu-West kernel mixture: particles [..., C, p], weights [..., C].
+
+    Kernel locations ``a chi_i + (1 - a) mu`` with ``a = (3 delta - 1) / (2 delta)``, kernel
+    covariance ``h^2 V`` with ``h^2 = 1 - a^2``, ``mu`` and ``V`` the weighted particle mean and
+    covariance. Returns the mixture's mean [..., p] (= mu) and covariance [..., p, p] (= V).
+    """
+    shrink = (3.0 * delta - 1.0) / (2.0 * delta)
+    mean, particle_cov = weighted_moments(particles, weights)
+    locations = shrink * particles + (1.0 - shrink) * mean.unsqueeze(-2)
+    _, location_cov = weighted_moments(locations, weights)
+    return mean, location_cov + (1.0 - shrink**2) * particle_cov
+
+
+def observation_log_likelihood(
+    expected: Tensor, observation: Tensor, noise_var: Tensor
+) -> Tensor:
+    """Gaussian log likelihood (eq. 31, up to a constant) of C points.
+
+    expected [..., C, k], observation [..., k], noise_var (diagonal R) [..., k] -> [..., C].
+    """
+    # One [..., C, k] temporary (k = 4098): the residual scaled by 1 / sqrt(R), by addcmul.
+    inverse_std = noise_var.rsqrt().unsqueeze(-2)
+    offset = (-observation.unsqueeze(-2)) * inverse_std
+    scaled_residual = torch.addcmul(offset, expected, inverse_std)
+    squared_distance = scaled_residual.unsqueeze(-2) @ scaled_residual.unsqueeze(-1)
+    log_likelihood = -0.5 * squared_distance[..., 0, 0]
+    require_finite_summary(log_likelihood, expected, "expected observation")
+    return log_likelihood
+
+
+def observation_log_weights(expected: Tensor, observation: Tensor, noise_var: Tensor) -> Tensor:
+    """Normalised log importance weights (eq. 31) of C points with uniform prior weights.
+
+    expected [..., C, k], observation [..., k], noise_var (diagonal R) [..., k] -> [..., C].
+    """
+    log_likelihood = observation_log_likelihood(expected, observation, noise_var)
+    return log_likelihood - torch.logsumexp(log_likelihood, -1, keepdim=True)
+
+
+def effective_sample_size(log_weights: Tensor) -> Tensor:
+    """1 / sum w^2 of normalised log weights [..., C] -> [...]."""
+    return (-torch.logsumexp(2.0 * log_weights, -1)).exp()
+
+
+def temper_log_weights(
+    log_likelihood: Tensor, min_ess: float, iterations: int = 40
+) -> tuple[Tensor, Tensor]:
+    """Normalised log weights ``beta l`` with the largest ``beta`` in (0, 1] whose effective
+    sample size is at least ``min_ess`` (a count of points, <= C).
+
+    log_likelihood [..., C] (any constant offset) -> (log weights [..., C], beta [...]).
+    ``beta = 1`` (the plain eq. 31 weights) wherever they already have the ESS; otherwise
+    ``beta`` is found by bisection (the ESS falls monotonically with ``beta``), without
+    gradient; the weights stay differentiable in the likelihood. Over thousands of pixels
+    whose noise is not independent, the untempered weights put all mass on one point.
+    """
+    with torch.no_grad():
+        detached = log_likelihood.detach()
+        ones = detached.new_ones(detached.shape[:-1])
+        low, high = torch.zeros_like(ones), ones.clone()
+        full_ok = effective_sample_size(_tempered(detached, ones)) >= min_ess
+        for _ in range(iterations if not bool(full_ok.all()) else 0):
+            middle = 0.5 * (low + high)
+            ok = effective_sample_size(_tempered(detached, middle)) >= min_ess
+            low = torch.where(ok, middle, low)
+            high = torch.where(ok, high, middle)
+        beta = torch.where(full_ok, ones, low)
+    return _tempered(log_likelihood, beta), beta
+
+
+def _tempered(log_likelihood: Tensor, beta: Tensor) -> Tensor:
+    """Normalised ``beta l``: log_likelihood [..., C], beta [...] -> [..., C]."""
+    scaled = beta.unsqueeze(-1) * log_likelihood
+    return scaled - torch.logsumexp(scaled, -1, keepdim=True)
+
+
+def unscented_points(mean: Tensor, factor: Tensor, kappa: float) -> tuple[Tensor, Tensor]:
+    """Julier's 2d + 1 points of N(mean [..., d], factor factor^T) -> [..., 2d+1, d], [2d+1].
+
+    Weights ``kappa / (d + kappa)`` for the centre and ``1 / (2 (d + kappa))`` for the others:
+    non-negative for kappa >= 0.
+    """
+    d = mean.shape[-1]
+    offsets = math.sqrt(d + kappa) * factor.transpose(-1, -2)
+    centre = mean.unsqueeze(-2)
+    points = torch.cat([centre, centre + offsets, centre - offsets], -2)
+    weights = torch.full((2 * d + 1,), 1.0 / (2.0 * (d + kappa)), dtype=DTYPE, device=mean.device)
+    weights = torch.cat([weights.new_full((1,), kappa / (d + kappa)), weights[1:]])
+    return points, weights
+
+
+def woodbury_update(
+    mean: Tensor,
+    state_deviation: Tensor,
+    observation_deviation: Tensor,
+    weights: Tensor,
+    innovation: Tensor,
+    noise_var: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """Kalman update from sigma points without a k x k matrix.
+
+    mean [..., d]; state_deviation X [..., m, d] and observation_deviation U [..., m, k]: the
+    points minus their weighted means; weights W [m] >= 0, with ``X^T W X`` the prior
+    covariance (true for ``unscented_points``); innovation z - z_mean [..., k]; noise_var the
+    diagonal of R [..., k]. With ``X' = W^1/2 X``, ``U' = W^1/2 U``, ``G = U' R^-1 U'^T`` and
+    ``M = I + G`` [m, m], Woodbury gives ``U' S^-1 = M^-1 U' R^-1`` for
+    ``S = U'^T U' + R``, so the gain ``K = P_xz S^-1 = X'^T M^-1 U' R^-1`` and the posterior
+    covariance ``X'^T X' - K S K^T = X'^T M^-1 X'`` (PSD by construction).
+    Returns the posterior mean [..., d] and covariance [..., d, d].
+    """
+    root_weights = weights.sqrt().unsqueeze(-1)
+    state_dev = root_weights * state_deviation
+    obs_dev = root_weights * observation_deviation
+    obs_dev_over_r = obs_dev * noise_var.reciprocal().unsqueeze(-2)
+    eye = torch.eye(weights.shape[-1], dtype=mean.dtype, device=mean.device)
+    core_factor = torch.linalg.cholesky(eye + obs_dev_over_r @ obs_dev.transpose(-1, -2))
+    projected = (obs_dev_over_r @ innovation.unsqueeze(-1)).squeeze(-1)
+    solved = torch.cholesky_solve(torch.cat([projected.unsqueeze(-1), state_dev], -1), core_factor)
+    correction = (state_dev.transpose(-1, -2) @ solved[..., :1]).squeeze(-1)
+    cov = state_dev.transpose(-1, -2) @ solved[..., 1:]
+    return mean + correction, symmetrize(cov)
+
+
+def condition_pose(
+    belief: Belief, layout: StateLayout, parameter_mean: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Pose block given the parameters = ``parameter_mean`` [..., p] (eq. 34-35).
+
+    Returns the conditional mean [..., d], covariance [..., d, d] and the regression
+    coefficient ``B = S_psi,phi S_phi^-1`` [..., d, p].
+    """
+    pose, params = layout.pose_slice, layout.parameter_slice
+    cov_pose_param = belief.cov[..., pose, params]
+    param_factor = cholesky_safe(belief.cov[..., params, params])
+    cov_param_pose = cov_pose_param.transpose(-1, -2)
+    regression = torch.cholesky_solve(cov_param_pose, param_factor).transpose(-1, -2)
+    shift = parameter_mean - belief.mean[..., params]
+    mean = belief.mean[..., pose] + (regression @ shift.unsqueeze(-1)).squeeze(-1)
+    cov = belief.cov[..., pose, pose] - regression @ cov_param_pose
+    return mean, symmetrize(cov), regression
+
+
+def joint_belief(
+    pose_mean: Tensor,
+    pose_cov: Tensor,
+    regression: Tensor,
+    parameter_mean: Tensor,
+    parameter_cov: Tensor,
+) -> Belief:
+    """Product N(psi | a + B phi, pose_cov) N(phi | parameter_mean, parameter_cov) (eq. 36).
+
+    pose_mean [..., d] is the conditional mean at ``phi = parameter_mean``, pose_cov
+    [..., d, d], regression B [..., d, p], parameter_cov [..., p, p] -> Belief over (psi, phi).
+    """
+    cross = regression @ parameter_cov
+    top = torch.cat([pose_cov + cross @ regression.transpose(-1, -2), cross], -1)
+    bottom = torch.cat([cross.transpose(-1, -2), parameter_cov], -1)
+    cov = symmetrize(torch.cat([top, bottom], -2))
+    return Belief(torch.cat([pose_mean, parameter_mean], -1), cov)
+
+
+def check_prediction(prediction: Prediction, layout: StateLayout) -> None:
+    """Raise DataError for a non-finite process model output or a negative process noise."""
+    pose_names = layout.names[layout.pose_slice]
+    require_finite(prediction.pose, "prediction.pose", pose_names)
+    require_finite(prediction.force_n, "prediction.force_n", ("fx", "fy"))
+    require_finite(prediction.process_var, "prediction.process_var", pose_names)
+    if bool((prediction.process_var < 0).any()):
+        raise DataError("prediction.process_var has a negative variance")
+
+
+class DualFilter:
+    """Predict and update a joint pose/parameter Gaussian (paper 1, III-F; see module doc).
+
+    process_model: ``predict(states [..., C, n], inputs, dt_s) -> Prediction``;
+    observation_model: ``expected(states [..., C, n], force_n [..., C, 2]) -> [..., C, k]`` and
+    ``noise_var(observation [..., k]) -> [..., k]``. ``sigma_points`` is C;
+    ``liu_west_delta`` in (1/3, 1] the kernel discount factor; ``ukf_kappa >= 0`` Julier's
+    kappa; ``parameter_var_floor`` (state units squared) is added to the parameter covariance's
+    diagonal after each update to keep it SPD.
+
+    Robustness (see ``update``): ``min_ess_fraction`` in [0, 1] tempers the parameter weights
+    until their effective sample size is at least that fraction of C (0: plain eq. 31);
+    ``marginal_parameter_likelihood`` weighs the parameters with ``R`` plus the per-entry
+    variance of the sigma points' expected observations, the Gaussian marginal over the
+    points' pose spread (otherwise the pose scatter of the points, not their parameters,
+    decides the weights); ``pose_std_floor`` [6] (m, rad, m/s, rad/s per link entry, or None)
+    is the least std of the predicted pose block: the unscented points must spread over at
+    least about a pixel for the rendered depth to tell them apart. An observation model with
+    an ``unexplained(observation [..., k], expected [..., C, k]) -> bool [..., k]`` method
+    marks entries it cannot explain (the gripper in front of the object); they get the noise
+    variance ``UNEXPLAINED_VAR``.
+    """
+
+    def __init__(
+        self,
+        layout: StateLayout,
+        process_model: ProcessModel,
+        observation_model: ObservationModel,
+        sigma_points: int = 100,
+        liu_west_delta: float = 0.97,
+        ukf_kappa: float = 1.0,
+        parameter_var_floor: float = 1e-12,
+        min_ess_fraction: float = 0.5,
+        marginal_parameter_likelihood: bool = True,
+        pose_std_floor: Sequence[float] | None = (0.004, 0.004, 0.04, 0.0, 0.0, 0.0),
+    ) -> None:
+        if sigma_points < 2:
+            raise ValueError(f"sigma_points must be >= 2, got {sigma_points}")
+        if not 1.0 / 3.0 < liu_west_delta <= 1.0:
+            raise ValueError(f"liu_west_delta must be in (1/3, 1], got {liu_west_delta}")
+        if ukf_kappa < 0:
+            raise ValueError(f"ukf_kappa must be >= 0 (non-negative weights), got {ukf_kappa}")
+        if parameter_var_floor < 0:
+            raise ValueError(f"parameter_var_floor must be >= 0, got {parameter_var_floor}")
+        self.layout = layout
+        self.process_model = process_model
+        self.observation_model = observation_model
+        self.sigma_points = sigma_points
+        self.liu_west_delta = liu_west_delta
+        self.ukf_kappa = ukf_kappa
+        self.parameter_var_floor = parameter_var_floor
+        if not 0.0 <= min_ess_fraction <= 1.0:
+            raise ValueError(f"min_ess_fraction must be in [0, 1], got {min_ess_fraction}")
+        self.min_ess_fraction = min_ess_fraction
+        self.marginal_parameter_likelihood = marginal_parameter_likelihood
+        self.pose_var_floor: Tensor | None = None
+        if pose_std_floor is not None:
+            floor = torch.as_tensor(pose_std_floor, dtype=DTYPE)
+            if floor.shape != (6,) or bool((floor < 0).any()):
+                raise ValueError(f"pose_std_floor: expected 6 values >= 0, got {pose_std_floor}")
+            self.pose_var_floor = floor.square().repeat(layout.n_links)
+
+    def predict(
+        self, belief: Belief, inputs: ProcessInput, dt_s: float, generator: torch.Generator
+    ) -> tuple[Belief, Tensor, Prediction]:
+        """Draw the noise from ``generator`` and ``propagate``; see there for the outputs."""
+        batch = (*belief.mean.shape[:-1], self.sigma_points)
+        device = belief.mean.device
+        state_noise = _standard_normal((*batch, self.layout.size), generator, device)
+        process_noise = _standard_normal((*batch, self.layout.n_pose), generator, device)
+        return self.propagate(belief, inputs, dt_s, state_noise, process_noise)
+
+    def propagate(
+        self,
+        belief: Belief,
+        inputs: ProcessInput,
+        dt_s: float,
+        state_noise: Tensor,
+        process_noise: Tensor,
+    ) -> tuple[Belief, Tensor, Prediction]:
+        """Prediction step (eq. 21-26) from given standard normal draws.
+
+        state_noise [..., C, n], process_noise [..., C, 6L] -> predicted belief, predicted
+        sigma points [..., C, n] (unprojected parameters) and the model's Prediction.
+        """
+        belief.check_finite(self.layout.names)
+        sigma = sigma_points_from_noise(belief, state_noise)
+        model_states = project_feasible(sigma, self.layout, inputs.link_size_m)
+        prediction = self.process_model.predict(model_states, inputs, dt_s)
+        check_prediction(prediction, self.layout)
+        process_var = prediction.process_var
+        if process_var.dim() < prediction.pose.dim():
+            process_var = process_var.unsqueeze(-2)
+        pose = prediction.pose + process_noise * process_var.sqrt()
+        sigma_pred = torch.cat([pose, sigma[..., self.layout.parameter_slice]], -1)
+        weights = sigma_pred.new_full(sigma_pred.shape[:-1], 1.0 / self.sigma_points)
+        mean, cov = weighted_moments(sigma_pred, weights)
+        return Belief(mean, cov), sigma_pred, prediction
+
+    def update(
+        self, belief_pred: Belief, sigma_pred: Tensor, prediction: Prediction, observation: Tensor
+    ) -> Belief:
+        """Dual update against observation [..., k]: parameters, then the conditional pose."""
+        require_finite(observation, "observation")
+        noise_var = self.observation_model.noise_var(observation)
+        require_finite(noise_var, "observation noise_var")
+        if bool((noise_var <= 0).any()):
+            raise DataError("observation noise_var must be positive")
+        expected = self.observation_model.expected(sigma_pred, prediction.force_n)
+        unexplained = getattr(self.observation_model, "unexplained", None)
+        if unexplained is not None:
+            mask = unexplained(observation, expected)
+            noise_var = torch.where(mask, torch.full_like(noise_var, UNEXPLAINED_VAR), noise_var)
+        parameter_var = noise_var
+        if self.marginal_parameter_likelihood:
+            parameter_var = noise_var + expected.var(-2)
+        log_likelihood = observation_log_likelihood(expected, observation, parameter_var)
+        log_weights, beta = temper_log_weights(
+            log_likelihood, self.min_ess_fraction * self.sigma_points
+        )
+        weights = log_weights.exp()
+        if logger.isEnabledFor(logging.DEBUG):
+            ess = effective_sample_size(log_weights.detach())
+            logger.debug(
+                "effective sample size %s of %d (tempering %s)",
+                ess.tolist(), self.sigma_points, beta.tolist(),
+            )
+        parameters = sigma_pred[..., self.layout.parameter_slice]
+        parameter_mean, parameter_cov = liu_west(parameters, weights, self.liu_west_delta)
+        eye = torch.eye(parameter_cov.shape[-1], dtype=DTYPE, device=parameter_cov.device)
+        parameter_cov = parameter_cov + self.parameter_var_floor * eye
+        force_n = (weights.unsqueeze(-1) * prediction.force_n).sum(-2)
+        pose = self._update_pose(belief_pred, parameter_mean, force_n, observation, noise_var)
+        posterior = joint_belief(*pose, parameter_mean, parameter_cov)
+        posterior.check_finite(self.layout.names)
+        return posterior
+
+    def step(
+        self,
+        belief: Belief,
+        inputs: ProcessInput,
+        dt_s: float,
+        observation: Tensor,
+        generator: torch.Generator,
+    ) -> Belief:
+        """One filter step: ``predict`` then ``update``."""
+        belief_pred, sigma_pred, prediction = self.predict(belief, inputs, dt_s, generator)
+        return self.update(belief_pred, sigma_pred, prediction, observation)
+
+    def _update_pose(
+        self,
+        belief_pred: Belief,
+        parameter_mean: Tensor,
+        force_n: Tensor,
+        observation: Tensor,
+        noise_var: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Unscented update of the pose given ``parameter_mean`` [..., p].
+
+        force_n [..., 2] is the tactile prediction used for every unscented point. Returns the
+        conditional pose mean [..., d], covariance [..., d, d] and the updated regression
+        coefficient ``B'`` [..., d, p].
+        """
+        prior_mean, prior_cov, regression = condition_pose(belief_pred, self.layout, parameter_mean)
+        if self.pose_var_floor is not None:
+            variance = prior_cov.diagonal(dim1=-2, dim2=-1)
+            raise_by = (self.pose_var_floor.to(prior_cov.device) - variance).clamp_min(0.0)
+            prior_cov = prior_cov + torch.diag_embed(raise_by)
+        prior_factor = cholesky_safe(prior_cov)
+        points, weights = unscented_points(prior_mean, prior_factor, self.ukf_kappa)
+        count = points.shape[-2]
+        params = parameter_mean.unsqueeze(-2).expand(*parameter_mean.shape[:-1], count, -1)
+        forces = force_n.unsqueeze(-2).expand(*force_n.shape[:-1], count, -1)
+        expected = self.observation_model.expected(torch.cat([points, params], -1), forces)
+        expected_mean = (weights.unsqueeze(-1) * expected).sum(-2)
+        require_finite_summary(expected_mean, expected, "expected observation")
+        mean, cov = woodbury_update(
+            prior_mean,
+            points - prior_mean.unsqueeze(-2),
+            expected - expected_mean.unsqueeze(-2),
+            weights,
+            observation - expected_mean,
+            noise_var,
+        )
+        regression = cov @ torch.cholesky_solve(regression, prior_factor)
+        return mean, cov, regression

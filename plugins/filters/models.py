@@ -1,0 +1,240 @@
+"""Process-model components of the dual filter: ``filters.gnn``, ``filters.ff`` and
+``filters.analytical`` (kind ``process_model``).
+
+The learned models hold their ``nn.Module`` in ``.net``. A checkpoint is the module's state
+dict (``torch.save``) plus a JSON sidecar ``<checkpoint>.json`` with the architecture
+hyper-parameters; loading checks both against the configuration and names what differs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any, ClassVar
+
+import torch
+from pydantic import Field
+from torch import Tensor, nn
+from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
+from vistac.errors import ConfigError, ConfigIssue, DataError
+from vistac.plugins.filters.analytical import PushSettings, analytical_prediction
+from vistac.plugins.filters.nets import FeedForwardProcessNet, GraphProcessNet, layout_of
+from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput
+
+log = logging.getLogger(__name__)
+
+_TRAIN_HINT = (
+    "train one with `vistac train`, or leave `checkpoint` empty for a freshly initialised net"
+)
+_MAX_LISTED = 5
+
+
+def sidecar_path(checkpoint: Path) -> Path:
+    """The JSON file next to a checkpoint that records its architecture."""
+    return checkpoint.with_name(checkpoint.name + ".json")
+
+
+def _listed(items: list[str]) -> str:
+    more = f" (+{len(items) - _MAX_LISTED} more)" if len(items) > _MAX_LISTED else ""
+    return ", ".join(items[:_MAX_LISTED]) + more
+
+
+def _shape(value: Any) -> tuple[int, ...] | str:
+    """A tensor's shape, or the type name of anything else."""
+    return tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+
+
+def _state_dict_mismatch(expected: dict[str, Tensor], loaded: dict[str, Any]) -> list[str]:
+    """What keeps ``loaded`` from fitting a module whose state dict is ``expected``."""
+    problems = []
+    missing = [key for key in expected if key not in loaded]
+    unexpected = [key for key in loaded if key not in expected]
+    wrong = [
+        f"{key} {_shape(loaded[key])} (expected {tuple(value.shape)})"
+        for key, value in expected.items()
+        if key in loaded and _shape(loaded[key]) != tuple(value.shape)
+    ]
+    for label, items in (("missing", missing), ("unexpected", unexpected), ("shape", wrong)):
+        if items:
+            problems.append(f"{label}: {_listed(items)}")
+    return problems
+
+
+def _check_sidecar(path: Path, plugin: str, architecture: dict[str, int]) -> None:
+    sidecar = sidecar_path(path)
+    if not sidecar.is_file():
+        log.warning("%s has no sidecar %s; checking the weights' shapes only", path, sidecar)
+        return
+    try:
+        saved = json.loads(sidecar.read_text(encoding="utf-8"))
+        saved_plugin, saved_architecture = saved["model"], saved["architecture"]
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise DataError(f"{sidecar}: unreadable checkpoint sidecar ({error})") from None
+    if saved_plugin != plugin:
+        raise DataError(
+            f"{path} was saved by {saved_plugin!r}, not {plugin!r}; use it with that model "
+            f"or {_TRAIN_HINT}"
+        )
+    differing = [
+        f"{key}: saved {saved_architecture.get(key)!r}, configured {value!r}"
+        for key, value in architecture.items()
+        if saved_architecture.get(key) != value
+    ]
+    if differing:
+        raise DataError(
+            f"{path} does not match the configured architecture ({'; '.join(differing)}); "
+            f"set the saved values in the skill, or {_TRAIN_HINT}"
+        )
+
+
+def load_checkpoint(net: nn.Module, path: Path, plugin: str, architecture: dict[str, int]) -> None:
+    """Load the state dict at ``path`` into ``net`` after checking file, sidecar and shapes.
+
+    Raises ConfigError for a missing file, DataError for an unreadable file or one that does
+    not fit the architecture; each message names the file and how to fix it.
+    """
+    if not path.is_file():
+        raise ConfigError([ConfigIssue("checkpoint", f"no such file {path}; {_TRAIN_HINT}")])
+    _check_sidecar(path, plugin, architecture)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a damaged file
+        raise DataError(
+            f"{path} is not a readable torch state dict ({type(error).__name__}: "
+            f"{str(error).splitlines()[0] if str(error) else ''}); {_TRAIN_HINT}"
+        ) from None
+    if not isinstance(state, dict):
+        raise DataError(f"{path} holds a {type(state).__name__}, not a state dict; {_TRAIN_HINT}")
+    problems = _state_dict_mismatch(net.state_dict(), state)
+    if problems:
+        raise DataError(
+            f"{path} does not fit {plugin} with {architecture} ({'; '.join(problems)}); "
+            f"check `hidden`/`n_links` in the skill, or {_TRAIN_HINT}"
+        )
+    net.load_state_dict(state)
+    log.info("loaded %s weights from %s", plugin, path)
+
+
+class _LearnedProcessModel(Component):
+    """Shared behaviour of the learned process models: seeded construction, checkpoints."""
+
+    kind = "process_model"
+    plugin: ClassVar[str]
+    n_links: int | None
+    net: nn.Module
+
+    def __init__(self, config: Any, ctx: ComponentContext) -> None:
+        super().__init__(config, ctx)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(ctx.seed)
+            self.net = self._build()
+        if config.checkpoint is not None:
+            load_checkpoint(self.net, Path(config.checkpoint), self.plugin, self.architecture())
+
+    def _build(self) -> nn.Module:
+        raise NotImplementedError
+
+    def architecture(self) -> dict[str, int]:
+        """The hyper-parameters a checkpoint must match."""
+        raise NotImplementedError
+
+    def predict(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
+        """states [..., C, n] -> Prediction (see ``vistac.plugins.filters.state``)."""
+        prediction: Prediction = self.net(states, inputs, dt_s)
+        return prediction
+
+    def save_checkpoint(self, path: str | Path) -> None:
+        """Write the state dict to ``path`` and the architecture to ``<path>.json``."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(self.net.state_dict(), path)
+        sidecar = {"model": self.plugin, "architecture": self.architecture()}
+        sidecar_path(path).write_text(json.dumps(sidecar, indent=2), encoding="utf-8")
+        log.info("saved %s weights to %s", self.plugin, path)
+
+
+class GNNProcessModel(_LearnedProcessModel):
+    """``filters.gnn``: the causal graph network; one set of weights for any link count."""
+
+    plugin = "filters.gnn"
+    n_links = None
+
+    class Config(ComponentConfig):
+        checkpoint: SkillPath | None = None
+        """State dict from ``save_checkpoint``; None = fresh weights seeded by the skill."""
+        hidden: int = Field(default=64, ge=4, le=1024)
+
+    config: Config
+
+    def _build(self) -> nn.Module:
+        return GraphProcessNet(self.config.hidden)
+
+    def architecture(self) -> dict[str, int]:
+        return {"hidden": self.config.hidden}
+
+
+class FFProcessModel(_LearnedProcessModel):
+    """``filters.ff``: the feed-forward baseline for a fixed number of links."""
+
+    plugin = "filters.ff"
+
+    class Config(ComponentConfig):
+        checkpoint: SkillPath | None = None
+        """State dict from ``save_checkpoint``; None = fresh weights seeded by the skill."""
+        hidden: int = Field(default=64, ge=4, le=1024)
+        n_links: int = Field(default=1, ge=1, le=8)
+
+    config: Config
+
+    def __init__(self, config: Config, ctx: ComponentContext) -> None:
+        self.n_links = config.n_links
+        super().__init__(config, ctx)
+
+    def _build(self) -> nn.Module:
+        return FeedForwardProcessNet(self.config.n_links, self.config.hidden)
+
+    def architecture(self) -> dict[str, int]:
+        return {"hidden": self.config.hidden, "n_links": self.config.n_links}
+
+
+class AnalyticalProcessModel(Component):
+    """``filters.analytical``: Lynch's quasi-static pushing of one homogeneous link (pulls move
+    the link rigidly with the gripper), with fixed, hand-tuned process noise."""
+
+    kind = "process_model"
+    n_links = 1
+
+    class Config(ComponentConfig):
+        pusher_friction: float = Field(default=0.5, ge=0.0)
+        """mu_r between finger pad and object."""
+        pusher_offset_m: float = Field(default=0.01, ge=0.0)
+        """TCP to the leading pad face (the executor's ``pusher_offset_m``)."""
+        contact_margin_m: float = Field(default=0.005, ge=0.0)
+        position_std_m: float = Field(default=0.002, gt=0.0)
+        theta_std_rad: float = Field(default=0.02, gt=0.0)
+        speed_std_mps: float = Field(default=0.005, gt=0.0)
+        rate_std_radps: float = Field(default=0.05, gt=0.0)
+
+    config: Config
+
+    def __init__(self, config: Config, ctx: ComponentContext) -> None:
+        super().__init__(config, ctx)
+        self.settings = PushSettings(
+            pusher_friction=config.pusher_friction,
+            pusher_offset_m=config.pusher_offset_m,
+            contact_margin_m=config.contact_margin_m,
+        )
+        std = [config.position_std_m] * 2 + [config.theta_std_rad]
+        std += [config.speed_std_mps] * 2 + [config.rate_std_radps]
+        self.process_var = torch.tensor(std, dtype=DTYPE) ** 2
+
+    def predict(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
+        """states [..., C, 10] (one link) -> Prediction with process_var [..., 6]."""
+        n_links = layout_of(states).n_links
+        if n_links != 1:
+            raise ValueError(
+                f"filters.analytical models one link (state size 10), got {n_links} links "
+                f"(state size {states.shape[-1]}); use filters.gnn for articulated objects"
+            )
+        return analytical_prediction(states, inputs, dt_s, self.settings, self.process_var)

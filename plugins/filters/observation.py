@@ -1,0 +1,402 @@
+"""Observation model of the dual filter (paper 1, III-F "Update Step", eq. 27-30).
+
+The observation is ``z = [depth (H*W), force (2)]``: the 64x64 depth image of the camera's
+last viewpoint, flattened row-major, followed by the total contact force on the fingers
+(world x, y, N), 4098 values by default. The expected observation of a sigma point renders the
+initial segmented object cloud moved rigidly with each link to the sigma point's planar link
+poses (projective transformation, eq. 27) and appends the process model's predicted force
+(eq. 28). ``R = diag(sigma_v^2 x H*W, sigma_t^2 x 2)`` comes from ``ObsNoiseNet`` (eq. 29-30).
+
+Conventions:
+
+- depth is the z coordinate in the optical frame (x right, y down, z forward), as
+  ``SimDepthCamera`` returns it; pixel (row v, column u) has its centre at ``(u, v)`` in
+  ``CameraIntrinsics`` coordinates;
+- background: a pixel that no object point covers shows the table plane z = 0 along that
+  pixel's ray, or ``max_range_m`` where the ray misses the table or meets it beyond the range;
+- no return: non-finite observed depth pixels (NaN, the sensor's "nothing") are replaced by the
+  same background value, so they carry no innovation;
+- splat: each object point covers the ``splat_px x splat_px`` pixels whose centres are nearest
+  to its projection (1: the nearest pixel only), which fills the holes a sparse cloud leaves.
+
+All tensors are float64 (``DTYPE``) on the CPU.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import torch
+from numpy.typing import NDArray
+from torch import Tensor, nn
+from vistac.plugins.filters.state import DTYPE, StateLayout
+from vistac.types import CameraIntrinsics
+
+logger = logging.getLogger(__name__)
+
+TensorLike = Tensor | NDArray[Any]
+N_FORCE = 2
+"""Tactile values at the end of the observation: total contact force (world x, y, N)."""
+
+
+def _rotation_z(theta_rad: Tensor) -> Tensor:
+    """[...] -> [..., 2, 2] planar rotation matrices."""
+    cos, sin = theta_rad.cos(), theta_rad.sin()
+    return torch.stack([torch.stack([cos, -sin], -1), torch.stack([sin, cos], -1)], -2)
+
+
+def _check_shape(name: str, tensor: Tensor, shape: tuple[int, ...]) -> None:
+    """Raise ValueError unless the trailing dimensions of ``tensor`` equal ``shape``."""
+    if tensor.dim() < len(shape) or tuple(tensor.shape[tensor.dim() - len(shape) :]) != shape:
+        expected = ", ".join(map(str, shape))
+        raise ValueError(f"{name}: expected shape [..., {expected}], got {list(tensor.shape)}")
+
+
+class DepthProjector:
+    """Renders the initial segmented object cloud at planar link poses (eq. 27).
+
+    Each point moves rigidly with its link: for the initial link pose ``(x0, y0, theta0)`` and a
+    new pose ``(x, y, theta)``, the point rotates about z by ``theta - theta0`` around the
+    link's origin and translates by ``(x - x0, y - y0)``; its height is unchanged. The moved
+    points are projected with the pinhole model and z-buffered with a scatter-min over the
+    flattened (batch, pixel) index: no Python loop over points or sigma points.
+
+    Not differentiable with respect to the poses: the pixel a point lands in is piecewise
+    constant, so ``render`` runs without autograd and returns values only (the filter's
+    likelihood weights need no gradient through the image).
+    """
+
+    def __init__(
+        self,
+        points_m: TensorLike,
+        link_index: TensorLike,
+        initial_poses: TensorLike,
+        intrinsics: CameraIntrinsics,
+        world_from_camera: TensorLike,
+        *,
+        width_px: int = 64,
+        height_px: int = 64,
+        splat_px: int = 1,
+        min_range_m: float = 0.1,
+        max_range_m: float = 3.0,
+    ) -> None:
+        """Args:
+        points_m: [P, 3] segmented object cloud at t0, world frame.
+        link_index: [P] int, the link each point belongs to.
+        initial_poses: [L, 3] link poses at t0 (x_m, y_m, theta_rad).
+        intrinsics: the camera's intrinsics at any resolution; resampled to
+            ``width_px x height_px``.
+        world_from_camera: [4, 4] pose of the optical frame (x right, y down, z forward).
+        splat_px: side of the square footprint of each point in pixels (>= 1).
+        min_range_m, max_range_m: points outside this depth range are dropped (the sensor
+            returns nothing there); ``max_range_m`` is also the background where a pixel's
+            ray misses the table.
+        """
+        points = torch.as_tensor(points_m, dtype=DTYPE)
+        links = torch.as_tensor(link_index, dtype=torch.int64)
+        poses0 = torch.as_tensor(initial_poses, dtype=DTYPE)
+        pose_wc = torch.as_tensor(world_from_camera, dtype=DTYPE)
+        self._validate(points, links, poses0, pose_wc, splat_px, min_range_m, max_range_m)
+        self.n_links = poses0.shape[0]
+        self.splat_px = splat_px
+        self.min_range_m = min_range_m
+        self.max_range_m = max_range_m
+        self.intrinsics = intrinsics.scaled(width_px, height_px)
+        rotation_wc, translation_wc = pose_wc[:3, :3], pose_wc[:3, 3]
+        rotation_cw = rotation_wc.T
+        self._camera_xy = rotation_cw[:, :2]  # camera-frame images of the world x, y axes
+        self._local = self._link_coordinates(points, links, poses0)
+        self._fixed_camera = (points[:, 2:3] * rotation_cw[:, 2] - rotation_cw @ translation_wc).T
+        self._footprint = self._footprint_offsets(splat_px, self.intrinsics.width + 2 * splat_px)
+        self.background_m = self._table_depth(rotation_wc, translation_wc)
+        logger.debug(
+            "DepthProjector: %d points, %d links, %dx%d px, splat %d, %.0f%% background rays "
+            "miss the table",
+            points.shape[0], self.n_links, width_px, height_px, splat_px,
+            100.0 * float((self.background_m == max_range_m).to(DTYPE).mean()),
+        )
+
+    @staticmethod
+    def _validate(
+        points: Tensor, links: Tensor, poses0: Tensor, pose_wc: Tensor, splat_px: int,
+        min_range_m: float, max_range_m: float,
+    ) -> None:
+        if points.dim() != 2 or points.shape[1] != 3 or not bool(points.isfinite().all()):
+            raise ValueError(f"points_m: expected finite [P, 3], got {list(points.shape)}")
+        if links.shape != points.shape[:1]:
+            raise ValueError(f"link_index: expected [{points.shape[0]}], got {list(links.shape)}")
+        if poses0.dim() != 2 or poses0.shape[1] != 3 or poses0.shape[0] < 1:
+            raise ValueError(f"initial_poses: expected [L, 3], got {list(poses0.shape)}")
+        if links.numel() and (int(links.min()) < 0 or int(links.max()) >= poses0.shape[0]):
+            raise ValueError(f"link_index: values must lie in [0, {poses0.shape[0]})")
+        if pose_wc.shape != (4, 4):
+            raise ValueError(f"world_from_camera: expected [4, 4], got {list(pose_wc.shape)}")
+        if splat_px < 1:
+            raise ValueError(f"splat_px must be >= 1, got {splat_px}")
+        if not 0.0 < min_range_m < max_range_m:
+            raise ValueError(f"need 0 < min_range_m < max_range_m, got {min_range_m}, "
+                             f"{max_range_m}")
+
+    @staticmethod
+    def _link_coordinates(points: Tensor, links: Tensor, poses0: Tensor) -> Tensor:
+        """Homogeneous planar coordinates of each point in its link's frame, one block of
+        rows (x, y, 1) per link and zeros in the other links' blocks: [3 L, P].
+
+        The link-frame coordinates are ``Rz(-theta0) (p_xy - origin0)``.
+        """
+        local_xy = torch.einsum(
+            "pji,pj->pi", _rotation_z(poses0[links, 2]), points[:, :2] - poses0[links, :2]
+        )
+        local = torch.zeros(3 * poses0.shape[0], points.shape[0], dtype=DTYPE)
+        columns = torch.arange(points.shape[0])
+        local[3 * links, columns] = local_xy[:, 0]
+        local[3 * links + 1, columns] = local_xy[:, 1]
+        local[3 * links + 2, columns] = 1.0
+        return local
+
+    @staticmethod
+    def _footprint_offsets(splat_px: int, row_stride: int) -> Tensor:
+        """Flat index offsets of a point's footprint from its first pixel: [splat_px^2] int64."""
+        steps = torch.arange(splat_px)
+        return (steps[:, None] * row_stride + steps[None, :]).reshape(-1)
+
+    def _table_depth(self, rotation_wc: Tensor, translation_wc: Tensor) -> Tensor:
+        """Depth of the plane z = 0 along each pixel's ray, ``max_range_m`` where the ray
+        misses it or meets it beyond the range: [H, W]."""
+        rays = torch.as_tensor(self.intrinsics.pixel_rays(), dtype=DTYPE)  # unit depth
+        rise_m = rays @ rotation_wc[2]  # world z change per metre of depth
+        depth_m = -translation_wc[2] / rise_m
+        hits = depth_m.isfinite() & (depth_m > 0.0) & (depth_m <= self.max_range_m)
+        return torch.where(hits, depth_m, torch.full_like(depth_m, self.max_range_m))
+
+    @property
+    def height_px(self) -> int:
+        return self.intrinsics.height
+
+    @property
+    def width_px(self) -> int:
+        return self.intrinsics.width
+
+    def _points_camera(self, link_poses: Tensor) -> Tensor:
+        """Object points moved to the link poses, in the camera frame.
+
+        link_poses: [N, L, 3] (x_m, y_m, theta_rad) -> [N, 3, P] (x, y, z rows).
+        One batched matmul with the per-link affine maps, no gather over points.
+        """
+        n_images = link_poses.shape[0]
+        rotation = self._camera_xy @ _rotation_z(link_poses[..., 2])  # [N, L, 3, 2]
+        translation = self._camera_xy @ link_poses[..., :2, None]  # [N, L, 3, 1]
+        camera_from_link = torch.cat([rotation, translation], -1)  # [N, L, 3, 3]
+        blocks = camera_from_link.transpose(1, 2).reshape(n_images, 3, 3 * self.n_links)
+        return blocks @ self._local + self._fixed_camera
+
+    def render(self, link_poses: Tensor) -> Tensor:
+        """Expected depth images: [..., C, L, 3] (x_m, y_m, theta_rad) -> [..., C, H, W] (m).
+
+        Any leading shape works; [..., L, 3] -> [..., H, W]. Values only (no autograd).
+        """
+        poses = torch.as_tensor(link_poses, dtype=DTYPE)
+        _check_shape("link_poses", poses, (self.n_links, 3))
+        batch = poses.shape[:-2]
+        with torch.no_grad():
+            depth_m = self._zbuffer(self._points_camera(poses.reshape(-1, self.n_links, 3)))
+        return depth_m.reshape(*batch, self.height_px, self.width_px).contiguous()
+
+    def _zbuffer(self, points_camera: Tensor) -> Tensor:
+        """Scatter-min of the points' depth into their footprints: [N, 3, P] -> [N, H, W].
+
+        The image is padded by ``splat_px`` pixels on each side and the footprints' first
+        pixels are clamped into the padding, so that no bounds test is needed: what lands in
+        the padding is cropped. Dropped points scatter +inf, which ``amin`` ignores.
+        """
+        k, pad = self.intrinsics, self.splat_px
+        n_images, padded_w = points_camera.shape[0], k.width + 2 * pad
+        padded_size = (k.height + 2 * pad) * padded_w
+        depth_m = points_camera[:, 2]
+        visible = (depth_m >= self.min_range_m) & (depth_m <= self.max_range_m)
+        safe_depth_m = torch.where(visible, depth_m, torch.ones_like(depth_m))
+        shift = 0.5 * (self.splat_px - 1)  # the footprint's first pixel is the rounded corner
+        u = k.fx * points_camera[:, 0] / safe_depth_m + (k.cx - shift + 0.5)
+        v = k.fy * points_camera[:, 1] / safe_depth_m + (k.cy - shift + 0.5)
+        col0 = u.floor_().clamp_(-pad, k.width).long() + pad
+        row0 = v.floor_().clamp_(-pad, k.height).long() + pad
+        first = row0 * padded_w + col0 + torch.arange(n_images)[:, None] * padded_size
+        index = (first[..., None] + self._footprint).reshape(-1)
+        values = torch.where(visible, depth_m, torch.full_like(depth_m, math.inf))
+        values = values[..., None].expand(-1, -1, self._footprint.numel()).reshape(-1)
+        padded = torch.full((n_images, k.height + 2 * pad, padded_w), math.inf, dtype=DTYPE)
+        image = padded[:, pad : pad + k.height, pad : pad + k.width]
+        image.copy_(self.background_m.expand_as(image))
+        padded.view(-1).scatter_reduce_(0, index, values, reduce="amin", include_self=True)
+        return image
+
+
+def observation_vector(depth_m: Tensor, force_n: Tensor, background_m: Tensor) -> Tensor:
+    """Flatten a depth image and append the tactile values.
+
+    depth_m: [..., H, W], non-finite where the sensor returned nothing; force_n: [..., 2];
+    background_m: [H, W] the renderer's background (``DepthProjector.background_m``), which
+    replaces the non-finite pixels so that they carry no innovation. Returns [..., H*W + 2].
+    """
+    depth = torch.as_tensor(depth_m, dtype=DTYPE)
+    force = torch.as_tensor(force_n, dtype=DTYPE)
+    _check_shape("depth_m", depth, tuple(background_m.shape))
+    _check_shape("force_n", force, (N_FORCE,))
+    depth = torch.where(depth.isfinite(), depth, background_m)
+    return torch.cat([depth.flatten(-2), force], -1)
+
+
+def split_observation(observation: Tensor, height_px: int, width_px: int) -> tuple[Tensor, Tensor]:
+    """Inverse of ``observation_vector``: [..., H*W + 2] -> ([..., H, W], [..., 2])."""
+    _check_shape("observation", observation, (height_px * width_px + N_FORCE,))
+    depth = observation[..., : height_px * width_px]
+    return depth.unflatten(-1, (height_px, width_px)), observation[..., height_px * width_px :]
+
+
+class ObsNoiseNet(nn.Module):
+    """Heteroscedastic observation noise (eq. 29-30).
+
+    A 3-layer CNN on the normalised depth image gives the visual log-variance (one scalar per
+    image); a 2-layer MLP on the normalised tactile values gives the tactile log-variance. Each
+    log-variance is ``log(std_init^2) + bound * tanh(raw / bound)``: the variances stay
+    positive and finite, within a factor ``exp(bound)`` of the initial ones, and start at
+    ``visual_std_m^2`` and ``tactile_std_n^2`` (the output layers start near zero).
+    """
+
+    log_var_init: Tensor
+    """Buffer [2]: initial log-variances (visual, tactile)."""
+
+    def __init__(
+        self,
+        *,
+        height_px: int = 64,
+        width_px: int = 64,
+        visual_std_m: float = 0.005,
+        tactile_std_n: float = 0.2,
+        log_var_bound: float = math.log(100.0),
+        depth_offset_m: float = 0.5,
+        depth_scale_m: float = 0.25,
+        force_scale_n: float = 5.0,
+    ) -> None:
+        """Depth is normalised as ``(depth - depth_offset_m) / depth_scale_m`` and force as
+        ``force / force_scale_n`` before the networks."""
+        super().__init__()
+        if min(visual_std_m, tactile_std_n, log_var_bound, depth_scale_m, force_scale_n) <= 0:
+            raise ValueError("ObsNoiseNet: stds, bound and scales must be positive")
+        self.height_px, self.width_px = height_px, width_px
+        self.log_var_bound = log_var_bound
+        self.depth_offset_m, self.depth_scale_m = depth_offset_m, depth_scale_m
+        self.force_scale_n = force_scale_n
+        visual_head, tactile_head = nn.Linear(16, 1), nn.Linear(16, 1)
+        with torch.no_grad():  # start near raw = 0, i.e. at the initial variances
+            for head in (visual_head, tactile_head):
+                head.weight.mul_(0.01)
+                head.bias.zero_()
+        self.visual = nn.Sequential(
+            nn.Conv2d(1, 8, 5, stride=2, padding=2),
+            nn.ReLU(),
+            nn.Conv2d(8, 16, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(16, 16, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.AdaptiveAvgPool2d(1),
+            nn.Flatten(),
+            visual_head,
+        )
+        self.tactile = nn.Sequential(nn.Linear(N_FORCE, 16), nn.ReLU(), tactile_head)
+        log_var_init = 2.0 * torch.tensor([math.log(visual_std_m), math.log(tactile_std_n)])
+        self.register_buffer("log_var_init", log_var_init)
+        self.to(DTYPE)
+
+    def forward(self, observation: Tensor) -> Tensor:
+        """Log-variances (visual, tactile): [..., H*W + 2] -> [..., 2]."""
+        depth, force = split_observation(observation, self.height_px, self.width_px)
+        batch = depth.shape[:-2]
+        image = (depth - self.depth_offset_m) / self.depth_scale_m
+        visual = self.visual(image.reshape(-1, 1, self.height_px, self.width_px))
+        tactile = self.tactile(force.reshape(-1, N_FORCE) / self.force_scale_n)
+        raw = torch.cat([visual, tactile], -1).reshape(*batch, 2)
+        bound = self.log_var_bound
+        return self.log_var_init + bound * torch.tanh(raw / bound)
+
+    def noise_var(self, observation: Tensor) -> Tensor:
+        """Diagonal of R: [..., H*W + 2] -> [..., H*W + 2] = (sigma_v^2 x H*W, sigma_t^2 x 2)."""
+        var = self(observation).exp()
+        batch = var.shape[:-1]
+        visual = var[..., :1].expand(*batch, self.height_px * self.width_px)
+        return torch.cat([visual, var[..., 1:].expand(*batch, N_FORCE)], -1)
+
+
+def unexplained_entries(
+    observation: Tensor, expected: Tensor, n_depth: int, margin_m: float | None
+) -> Tensor:
+    """Depth entries (the first ``n_depth``) of observation [..., k] nearer than the nearest
+    of the expected observations [..., C, k] by more than ``margin_m``: bool [..., k]; all
+    False for ``margin_m`` None."""
+    mask = torch.zeros(observation.shape, dtype=torch.bool, device=observation.device)
+    if margin_m is None:
+        return mask
+    nearest = expected[..., :n_depth].amin(-2)
+    mask[..., :n_depth] = observation[..., :n_depth] < nearest - margin_m
+    return mask
+
+
+class ProjectionObservationModel:
+    """The filter's observation model: expected observations of sigma points and R."""
+
+    def __init__(
+        self,
+        layout: StateLayout,
+        projector: DepthProjector,
+        noise_net: ObsNoiseNet,
+        occlusion_margin_m: float | None = 0.01,
+    ) -> None:
+        """occlusion_margin_m: see ``unexplained``; None keeps every pixel."""
+        if projector.n_links != layout.n_links:
+            raise ValueError(
+                f"projector has {projector.n_links} links, layout {layout.n_links}"
+            )
+        if (noise_net.height_px, noise_net.width_px) != (projector.height_px, projector.width_px):
+            raise ValueError("noise_net and projector image sizes differ")
+        self.layout = layout
+        self.projector = projector
+        self.noise_net = noise_net
+        self.occlusion_margin_m = occlusion_margin_m
+
+    @property
+    def size(self) -> int:
+        """Observation size H*W + 2 (4098 for 64x64)."""
+        return self.projector.height_px * self.projector.width_px + N_FORCE
+
+    def expected(self, states: Tensor, force_n: Tensor) -> Tensor:
+        """Expected observation per sigma point (eq. 27-28).
+
+        states: [..., C, n]; force_n: [..., C, 2] predicted contact force (process model).
+        Returns [..., C, H*W + 2]. Gradients flow to ``force_n`` but not to the states: the
+        rendered depth is values only.
+        """
+        _check_shape("states", states, (self.layout.size,))
+        link_poses = self.layout.link_pose(states)[..., :3]  # (x, y, theta) per link
+        depth_m = self.projector.render(link_poses)
+        return observation_vector(depth_m, force_n, self.projector.background_m)
+
+    def observation(self, depth_m: Tensor, force_n: Tensor) -> Tensor:
+        """A measured observation: depth [..., H, W] (NaN = no return), force [..., 2] ->
+        [..., H*W + 2], no-return pixels set to the renderer's background."""
+        return observation_vector(depth_m, force_n, self.projector.background_m)
+
+    def noise_var(self, observation: Tensor) -> Tensor:
+        """Diagonal of R: [..., H*W + 2] -> [..., H*W + 2]."""
+        return self.noise_net.noise_var(observation)
+
+    def unexplained(self, observation: Tensor, expected: Tensor) -> Tensor:
+        """Depth pixels nearer to the camera than every sigma point's rendering, by more than
+        ``occlusion_margin_m``: something the projection does not hold (the gripper, the arm)
+        hides the object or table there. observation [..., k], expected [..., C, k] ->
+        bool [..., k] (the tactile entries are never unexplained)."""
+        return unexplained_entries(
+            observation, expected, self.projector.height_px * self.projector.width_px,
+            self.occlusion_margin_m,
+        )  # fmt: skip

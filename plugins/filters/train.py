@@ -1,0 +1,509 @@
+"""``vistac train``: collect interactions in simulation and train the learned filter models.
+
+1. Collect: run the collection skill once per training and validation object (or read
+   recorded run folders given with ``--data``).
+2. Process model (per interaction type and model): open-loop rollouts of ``rollout_steps``
+   from the true state, loss = Gaussian NLL of the true next pose under the predicted mean
+   and learned process noise + MSE of the mean + NLL of the measured finger force (IV-B2).
+3. Observation noise: ObsNoiseNet by the NLL of the measured depth image and force around
+   the image projected at the true pose (the observation-noise term of IV-B2).
+4. End to end: ``filter_epochs`` passes through the dual filter on windows of a third of a
+   trajectory, loss = NLL + MSE of the true state under the belief; gradients reach the
+   process model and ObsNoiseNet through the filter.
+Validation loss picks the checkpoint and stops training when it stops improving.
+Checkpoints are state dicts (``<model>_<interaction>.pt``, ``obs_noise_<interaction>.pt``)
+with a JSON sidecar; ``train.json`` reports the losses, the data and the time.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from torch import Tensor, nn
+from vistac.errors import ConfigError, DataError
+from vistac.objects import load_object, write_configurations
+from vistac.plugins.filters.data import (
+    Trajectory,
+    describe,
+    load_trajectories,
+    object_cloud,
+    process_inputs,
+    stack_equal_length,
+    true_states,
+)
+from vistac.plugins.filters.dual import Belief, DualFilter
+from vistac.plugins.filters.observation import (
+    DepthProjector,
+    ObsNoiseNet,
+    ProjectionObservationModel,
+    observation_vector,
+)
+from vistac.plugins.filters.state import DTYPE, StateLayout
+
+log = logging.getLogger(__name__)
+
+ModelName = Literal["gnn", "ff"]
+Interaction = Literal["push", "pull"]
+_POSE_SCALE = torch.tensor([0.01, 0.01, 0.1, 0.01, 0.01, 0.1], dtype=DTYPE)
+"""Loss scale of (x, y m, theta rad, vx, vy m/s, omega rad/s)."""
+_FORCE_SCALE_N = 1.0
+
+
+class TrainConfig(BaseModel):
+    """A training preset (``--preset tiny|paper`` or a YAML file with these fields)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    objects: Literal["shipped", "generated"] = "shipped"
+    """shipped: skills/objects/*.yaml; generated: `vistac objects generate` train/val split."""
+    shipped_train: tuple[str, ...] = ("rect1", "tri2", "ellip2", "hexagon", "artic_rect_rect")
+    shipped_val: tuple[str, ...] = ("rect3", "hetero_rect_tri")
+    max_objects: int | None = Field(None, gt=0, description="cap on objects per split")
+    runs_per_object: int = Field(1, gt=0, description="collection-skill runs per object")
+    collect_overrides: tuple[str, ...] = ()
+    """``--set`` overrides of the collection skill, e.g. "tree.sequence.0.repeat.max=3"."""
+    models: tuple[ModelName, ...] = ("gnn", "ff")
+    interactions: tuple[Interaction, ...] = ("push", "pull")
+    hidden: int = Field(64, ge=4)
+    rollout_steps: int = Field(5, gt=0)
+    epochs: int = Field(30, gt=0)
+    noise_epochs: int = Field(5, ge=0)
+    filter_epochs: int = Field(1, ge=0)
+    filter_sigma_points: int = Field(24, ge=2)
+    filter_windows: int | None = Field(None, gt=0, description="cap on end-to-end windows/epoch")
+    batch_size: int = Field(16, gt=0)
+    learning_rate: float = Field(2e-3, gt=0)
+    patience: int = Field(5, gt=0, description="epochs without validation gain before stopping")
+    seed: int = 0
+
+
+PRESETS: dict[str, TrainConfig] = {
+    "tiny": TrainConfig(
+        shipped_train=("rect2",), shipped_val=("rect1",), models=("gnn", "ff"),
+        collect_overrides=("tree.sequence.0.repeat.max=4",
+                           "components.affordances.with.interactions=[push]"),
+        interactions=("push",), hidden=32, epochs=8, noise_epochs=2, filter_epochs=1,
+        filter_sigma_points=16, filter_windows=4, batch_size=8,
+    ),
+    "paper": TrainConfig(objects="generated", runs_per_object=1, epochs=60, patience=8),
+}  # fmt: skip
+
+
+def load_preset(name: str) -> TrainConfig:
+    """A named preset or a YAML file of TrainConfig fields."""
+    if name in PRESETS:
+        return PRESETS[name]
+    path = Path(name)
+    if not path.is_file():
+        raise ConfigError(f"unknown preset {name!r}: use {', '.join(PRESETS)} or a YAML file")
+    import yaml
+
+    try:
+        return TrainConfig.model_validate(yaml.safe_load(path.read_text(encoding="utf-8")))
+    except ValueError as error:
+        raise ConfigError(f"{path}: not a valid training preset:\n{error}") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# Collection
+
+
+def object_files(config: TrainConfig, skill_dir: Path, out_dir: Path) -> dict[str, list[Path]]:
+    """Train and validation object files of the preset."""
+    if config.objects == "generated":
+        split = write_configurations(config.seed, out_dir / "objects")
+        files = {k: [Path(p) for p in split[k]] for k in ("train", "val")}
+    else:
+        folder = skill_dir / "objects"
+        files = {
+            "train": [folder / f"{name}.yaml" for name in config.shipped_train],
+            "val": [folder / f"{name}.yaml" for name in config.shipped_val],
+        }
+    cap = config.max_objects
+    return {split: paths[:cap] if cap else paths for split, paths in files.items()}
+
+
+def collect(skill: Path, objects: list[Path], out_dir: Path, config: TrainConfig) -> list[Path]:
+    """Run the collection skill on every object; returns the run folders."""
+    from vistac.cli import main
+
+    runs = []
+    for obj in objects:
+        load_object(obj)  # a clear error before any simulation
+        for run in range(config.runs_per_object):
+            run_dir = out_dir / f"{obj.stem}_{run}"
+            if not (run_dir / "summary.json").is_file():
+                args = ["-q", "run", str(skill), "--out", str(run_dir), "--overwrite",
+                        "--seed", str(config.seed + run),
+                        "--set", f"components.world.with.object={obj.resolve()}"]  # fmt: skip
+                for override in config.collect_overrides:
+                    args += ["--set", override]
+                if main(args) != 0:
+                    raise DataError(f"collection failed on {obj}; see {run_dir}")
+            runs.append(run_dir)
+            log.info("collected %s", run_dir)
+    return runs
+
+
+# ---------------------------------------------------------------------------------------------
+# Losses
+
+
+def gaussian_nll(error: Tensor, var: Tensor) -> Tensor:
+    """Mean Gaussian negative log-likelihood of errors [..., d] with variances [..., d]."""
+    return 0.5 * (error.square() / var + var.log() + math.log(2 * math.pi)).mean()
+
+
+def rollout_loss(model: Any, windows: list[Trajectory], rollout_steps: int) -> Tensor:
+    """Open-loop rollout loss over a batch of equal-length windows of one link count."""
+    layout = StateLayout(windows[0].n_links)
+    truth = torch.stack([true_states(w, layout) for w in windows])  # [B, T, n]
+    inputs = process_inputs(windows)
+    force = torch.as_tensor(np.stack([w.force_n for w in windows]), dtype=DTYPE)
+    dt_s = windows[0].dt_s
+    losses = []
+    for start in range(0, truth.shape[1] - 1, rollout_steps):
+        state = truth[:, start : start + 1]  # [B, 1, n]
+        for step in range(start, min(start + rollout_steps, truth.shape[1] - 1)):
+            prediction = model.predict(state, inputs[step], dt_s)
+            target = truth[:, step + 1, layout.pose_slice].unsqueeze(1)
+            scale = _POSE_SCALE.repeat(layout.n_links)
+            error = (prediction.pose - target) / scale
+            var = prediction.process_var.unsqueeze(-2) / scale**2
+            force_error = (prediction.force_n[:, 0] - force[:, step + 1]) / _FORCE_SCALE_N
+            losses.append(gaussian_nll(error, var.expand_as(error)) + error.square().mean()
+                          + force_error.square().mean())  # fmt: skip
+            params = state[..., layout.parameter_slice]
+            state = torch.cat([prediction.pose, params], -1)
+    return torch.stack(losses).mean()
+
+
+def _projector(window: Trajectory, rng: np.random.Generator, splat_px: int = 2) -> DepthProjector:
+    if window.depth_m is None or window.camera_pose is None or window.intrinsics is None:
+        raise DataError(f"{window.source}: no depth frames; collect with record_depth: true")
+    points, owners = object_cloud(window.spec, rng)
+    from vistac.objects import link_frames
+
+    height, width = window.depth_m.shape[1:]
+    return DepthProjector(
+        points, owners, link_frames(window.spec), window.intrinsics, window.camera_pose[0],
+        width_px=width, height_px=height, splat_px=splat_px,
+    )  # fmt: skip
+
+
+def observations(window: Trajectory, projector: DepthProjector) -> Tensor:
+    """The measured observation vectors [T, H*W + 2] of a window."""
+    assert window.depth_m is not None
+    return observation_vector(
+        torch.as_tensor(window.depth_m, dtype=DTYPE),
+        torch.as_tensor(window.force_n, dtype=DTYPE),
+        projector.background_m,
+    )
+
+
+def noise_loss(noise_net: ObsNoiseNet, window: Trajectory, rng: np.random.Generator) -> Tensor:
+    """NLL of the measured observations around the projection at the true poses."""
+    projector = _projector(window, rng)
+    measured = observations(window, projector)
+    rendered = projector.render(torch.as_tensor(window.poses, dtype=DTYPE)[:, None]).squeeze(1)
+    expected = torch.cat([rendered.flatten(-2), measured[:, -2:]], -1)
+    return gaussian_nll(measured - expected, noise_net.noise_var(measured))
+
+
+def filter_loss(
+    model: Any,
+    noise_net: ObsNoiseNet,
+    window: Trajectory,
+    config: TrainConfig,
+    generator: torch.Generator,
+    rng: np.random.Generator,
+) -> Tensor:
+    """NLL + MSE of the true state under the dual filter's belief along one window."""
+    from vistac.plugins.filters.component import Prior
+
+    layout = StateLayout(window.n_links)
+    truth = true_states(window, layout)
+    projector = _projector(window, rng)
+    obs_model = ProjectionObservationModel(layout, projector, noise_net)
+    filter_ = DualFilter(layout, model, obs_model, config.filter_sigma_points)
+    belief = _initial_belief(truth[0], layout, Prior())
+    measured = observations(window, projector)
+    inputs = process_inputs([window])
+    scale = torch.ones(layout.size, dtype=DTYPE)
+    scale[layout.pose_slice] = _POSE_SCALE.repeat(layout.n_links)
+    losses = []
+    for step in range(1, window.steps):
+        belief = filter_.step(
+            belief, _unbatch(inputs[step - 1]), window.dt_s, measured[step], generator
+        )
+        error = (truth[step] - belief.mean) / scale
+        cov = belief.cov / (scale[:, None] * scale[None, :])
+        nll = 0.5 * (error @ torch.linalg.solve(cov, error) + torch.logdet(cov))
+        losses.append(nll / layout.size + error.square().mean())
+    return torch.stack(losses).mean()
+
+
+def _unbatch(inputs: Any) -> Any:
+    from vistac.plugins.filters.state import ProcessInput
+
+    return ProcessInput(*(getattr(inputs, f)[0] for f in inputs.__dataclass_fields__))
+
+
+def _initial_belief(truth: Tensor, layout: StateLayout, prior: Any) -> Belief:
+    """The belief a run starts from: true pose, prior parameters, prior covariance."""
+    mean = truth.clone()
+    std = torch.ones(layout.size, dtype=DTYPE)
+    per_pose = [prior.position_m] * 2 + [prior.angle_rad] + [prior.velocity_mps] * 3
+    std[layout.pose_slice] = torch.tensor(per_pose, dtype=DTYPE).repeat(layout.n_links)
+    link_mean = [prior.mass_kg[0], prior.friction[0], prior.com_m[0], prior.com_m[0]]
+    link_std = [prior.mass_kg[1], prior.friction[1], prior.com_m[1], prior.com_m[1]]
+    start = layout.n_pose
+    mean[start : start + 4 * layout.n_links] = torch.tensor(link_mean, dtype=DTYPE).repeat(
+        layout.n_links
+    )
+    std[start : start + 4 * layout.n_links] = torch.tensor(link_std, dtype=DTYPE).repeat(
+        layout.n_links
+    )
+    if layout.n_joints:
+        mean[-layout.n_joints :] = prior.joint_friction_nm[0]
+        std[-layout.n_joints :] = prior.joint_friction_nm[1]
+    return Belief(mean, torch.diag(std**2))
+
+
+# ---------------------------------------------------------------------------------------------
+# Training loops
+
+
+def batches(
+    windows: list[Trajectory], size: int, rng: np.random.Generator
+) -> Iterator[list[Trajectory]]:
+    """Shuffled batches of windows that share a link count."""
+    by_links: dict[int, list[Trajectory]] = {}
+    for window in windows:
+        by_links.setdefault(window.n_links, []).append(window)
+    chunks = []
+    for group in by_links.values():
+        order = rng.permutation(len(group))
+        chunks += [[group[i] for i in order[s : s + size]] for s in range(0, len(group), size)]
+    for index in rng.permutation(len(chunks)):
+        yield chunks[index]
+
+
+def fit(
+    parameters: list[nn.Parameter],
+    train_loss: Callable[[], Iterator[Tensor]],
+    val_loss: Callable[[], float],
+    modules: list[nn.Module],
+    epochs: int,
+    config: TrainConfig,
+    label: str,
+) -> list[dict[str, float]]:
+    """Adam with validation-based early stopping; restores the best weights."""
+    optimiser = torch.optim.Adam(parameters, lr=config.learning_rate)
+    best, best_state, stale, history = math.inf, None, 0, []
+    for epoch in range(epochs):
+        losses = []
+        for loss in train_loss():
+            optimiser.zero_grad()
+            loss.backward()  # type: ignore[no-untyped-call]
+            nn.utils.clip_grad_norm_(parameters, 10.0)
+            optimiser.step()
+            losses.append(float(loss.detach()))
+        with torch.no_grad():
+            val = val_loss()
+        history.append({"epoch": epoch, "train": float(np.mean(losses)), "val": val})
+        _progress(label, epoch + 1, epochs, history[-1])
+        if val < best - 1e-4:
+            best, stale = val, 0
+            best_state = [copy.deepcopy(m.state_dict()) for m in modules]
+        else:
+            stale += 1
+            if stale >= config.patience:
+                break
+    if best_state is not None:
+        for module, state in zip(modules, best_state, strict=True):
+            module.load_state_dict(state)
+    return history
+
+
+def _progress(label: str, done: int, total: int, row: dict[str, float]) -> None:
+    width = 20
+    bar = "#" * (width * done // total) + "." * (width - width * done // total)
+    sys.stderr.write(
+        f"\r{label:<18} [{bar}] {done}/{total} train {row['train']:.3f} val {row['val']:.3f}"
+    )
+    sys.stderr.write("\n" if done == total else "")
+    sys.stderr.flush()
+
+
+def _build_model(name: ModelName, n_links: int, config: TrainConfig, out_dir: Path) -> Any:
+    from vistac.testing import build_components
+
+    options: dict[str, Any] = {"hidden": config.hidden}
+    if name == "ff":
+        options["n_links"] = n_links
+    spec = {"model": {"plugin": f"filters.{name}", "with": options}}
+    return build_components(spec, out_dir / ".build", seed=config.seed).component("model")
+
+
+def train_interaction(
+    kind: Interaction, data: dict[str, list[Trajectory]], config: TrainConfig, out_dir: Path
+) -> dict[str, Any]:
+    """Train every model of the preset plus ObsNoiseNet on one interaction type."""
+    windows = {
+        split: stack_equal_length([t for t in trajs if t.kind == kind], _window_steps(trajs))
+        for split, trajs in data.items()
+    }
+    if not windows["train"] or not windows["val"]:
+        raise DataError(f"no {kind} trajectories in the train or validation data")
+    rng = np.random.default_rng(config.seed)
+    report: dict[str, Any] = {"windows": {k: len(v) for k, v in windows.items()}}
+    noise_net = ObsNoiseNet().to(DTYPE)
+    report["obs_noise"] = _train_noise(noise_net, windows, config, rng)
+    for name in config.models:
+        report[name] = _train_model(name, kind, noise_net, windows, config, out_dir, rng)
+    _save_noise(noise_net, out_dir / f"obs_noise_{kind}.pt")
+    return report
+
+
+def _window_steps(trajectories: list[Trajectory]) -> int:
+    """A third of the typical trajectory (paper 1, IV-B2), at least 3 steps."""
+    return max(3, int(np.median([t.steps for t in trajectories])) // 3) if trajectories else 3
+
+
+def _train_noise(
+    noise_net: ObsNoiseNet,
+    windows: dict[str, list[Trajectory]],
+    config: TrainConfig,
+    rng: np.random.Generator,
+) -> list[dict[str, float]]:
+    def train() -> Iterator[Tensor]:
+        for window in rng.permutation(len(windows["train"])):
+            yield noise_loss(noise_net, windows["train"][window], rng)
+
+    def val() -> float:
+        return float(np.mean([float(noise_loss(noise_net, w, rng)) for w in windows["val"]]))
+
+    params = list(noise_net.parameters())
+    return fit(params, train, val, [noise_net], config.noise_epochs, config, "obs noise")
+
+
+def _train_model(
+    name: ModelName,
+    kind: Interaction,
+    noise_net: ObsNoiseNet,
+    windows: dict[str, list[Trajectory]],
+    config: TrainConfig,
+    out_dir: Path,
+    rng: np.random.Generator,
+) -> dict[str, Any]:
+    link_counts = sorted({w.n_links for w in windows["train"]})
+    if name == "ff" and len(link_counts) > 1:
+        # The feed-forward baseline has a fixed link count: one model per count.
+        return {
+            f"{n}_links": _train_model(name, kind, noise_net, _only(windows, n), config,
+                                       out_dir / f"ff{n}", rng)
+            for n in link_counts
+        }  # fmt: skip
+    model = _build_model(name, link_counts[0], config, out_dir)
+    start_s = time.perf_counter()
+
+    def train() -> Iterator[Tensor]:
+        for batch in batches(windows["train"], config.batch_size, rng):
+            yield rollout_loss(model, batch, config.rollout_steps)
+
+    def val() -> float:
+        losses = [float(rollout_loss(model, b, config.rollout_steps))
+                  for b in batches(windows["val"], config.batch_size, rng)]  # fmt: skip
+        return float(np.mean(losses)) if losses else math.inf
+
+    params = list(model.net.parameters())
+    history = fit(params, train, val, [model.net], config.epochs, config, f"{name} {kind}")
+    filter_history = _train_filter(model, noise_net, windows, config, rng, f"{name} {kind} DF")
+    path = out_dir / f"{name}_{kind}.pt"
+    model.save_checkpoint(path)
+    return {
+        "checkpoint": str(path), "history": history, "filter_history": filter_history,
+        "time_s": time.perf_counter() - start_s,
+        "parameters": sum(p.numel() for p in params),
+    }  # fmt: skip
+
+
+def _only(windows: dict[str, list[Trajectory]], n_links: int) -> dict[str, list[Trajectory]]:
+    return {k: [w for w in v if w.n_links == n_links] for k, v in windows.items()}
+
+
+def _train_filter(
+    model: Any,
+    noise_net: ObsNoiseNet,
+    windows: dict[str, list[Trajectory]],
+    config: TrainConfig,
+    rng: np.random.Generator,
+    label: str,
+) -> list[dict[str, float]]:
+    if config.filter_epochs == 0:
+        return []
+    generator = torch.Generator().manual_seed(config.seed)
+
+    def loss(window: Trajectory) -> Tensor:
+        return filter_loss(model, noise_net, window, config, generator, rng)
+
+    cap = config.filter_windows
+
+    def train() -> Iterator[Tensor]:
+        for index in rng.permutation(len(windows["train"]))[:cap]:
+            yield loss(windows["train"][index])
+
+    def val() -> float:
+        return float(np.mean([float(loss(w)) for w in windows["val"][:cap]]))
+
+    params = list(model.net.parameters()) + list(noise_net.parameters())
+    return fit(params, train, val, [model.net, noise_net], config.filter_epochs, config, label)
+
+
+def _save_noise(noise_net: ObsNoiseNet, path: Path) -> None:
+    from vistac.plugins.filters.models import sidecar_path
+
+    torch.save(noise_net.state_dict(), path)
+    sidecar = {"model": "filters.dual", "architecture": {}}
+    sidecar_path(path).write_text(json.dumps(sidecar, indent=2), encoding="utf-8")
+
+
+def train(
+    skill: Path, out_dir: Path, config: TrainConfig, data_dirs: list[Path] | None = None
+) -> dict[str, Any]:
+    """Collect (unless ``data_dirs``) and train; writes checkpoints and ``train.json``."""
+    start_s = time.perf_counter()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(config.seed)
+    if data_dirs:
+        data = {"train": load_trajectories(data_dirs), "val": []}
+        cut = max(1, len(data["train"]) // 8)
+        data = {"train": data["train"][cut:], "val": data["train"][:cut]}
+    else:
+        files = object_files(config, skill.parent, out_dir)
+        data = {
+            split: load_trajectories(collect(skill, paths, out_dir / "data" / split, config))
+            for split, paths in files.items()
+        }
+    collect_s = time.perf_counter() - start_s
+    report: dict[str, Any] = {
+        "preset": config.model_dump(mode="json"),
+        "data": {split: describe(trajs) for split, trajs in data.items()},
+        "collect_time_s": collect_s,
+    }
+    for kind in config.interactions:
+        report[kind] = train_interaction(kind, data, config, out_dir)
+    report["time_s"] = time.perf_counter() - start_s
+    (out_dir / "train.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
+    return report

@@ -1,0 +1,395 @@
+"""Known-answer tests of the dual differentiable filter's numerical core."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pytest
+import torch
+from numpy.typing import NDArray
+from torch import Tensor
+from vistac.errors import DataError
+from vistac.plugins.filters.dual import (
+    Belief,
+    DualFilter,
+    cholesky_safe,
+    feasible,
+    liu_west,
+    project_feasible,
+    sample_sigma_points,
+    unscented_points,
+    weighted_moments,
+    woodbury_update,
+)
+from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput, StateLayout
+
+LAYOUT = StateLayout(1)
+DT_S = 0.1
+ACCEL_GAIN = np.array([[-1.0, 2.0, 0.0, 0.0], [0.5, 0.0, 3.0, 0.0], [0.0, -1.0, 0.0, 5.0]])
+"""Acceleration (vx, vy, omega) per parameter (m, f, com_x, com_y) of the linear toy."""
+ACCEL_OFFSET = np.array([0.2, -0.1, 0.0])
+FORCE_GAIN = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 2.0, 0.0, 0.0]])
+"""Tactile force (N) per parameter: depends on the parameters only, so the toy is exact."""
+PROCESS_VAR = np.array([1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-4])
+POSITION_VAR = 1e-4
+FORCE_VAR = 4e-2
+TRUE_PARAMETERS = np.array([1.0, 0.5, 0.01, -0.02])
+PRIOR_MEAN = np.array([0, 0, 0, 0, 0, 0, 0.8, 0.6, 0.0, 0.0])
+PRIOR_VAR = np.array([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3, 0.1**2, 0.1**2, 0.02**2, 0.02**2])
+
+
+@pytest.fixture(autouse=True)
+def single_thread() -> Iterator[None]:
+    """Tiny matrices: one thread avoids OpenMP spin-waits on a shared 2-core machine."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def as_tensor(values: NDArray[np.float64] | list[float]) -> Tensor:
+    return torch.as_tensor(np.asarray(values), dtype=DTYPE)
+
+
+class LinearProcess:
+    """x' = x + dt v, v' = v + dt (A phi + c); force = F phi; parameters unchanged."""
+
+    def __init__(self, accel_gain: Tensor | None = None) -> None:
+        self.accel_gain = as_tensor(ACCEL_GAIN) if accel_gain is None else accel_gain
+        self.calls: list[Tensor] = []
+
+    def predict(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
+        self.calls.append(states.detach().clone())
+        position, velocity = states[..., 0:3], states[..., 3:6]
+        parameters = states[..., 6:10]
+        accel = parameters @ self.accel_gain.T + as_tensor(ACCEL_OFFSET)
+        pose = torch.cat([position + dt_s * velocity, velocity + dt_s * accel], -1)
+        force_n = parameters @ as_tensor(FORCE_GAIN).T
+        return Prediction(pose, force_n, as_tensor(PROCESS_VAR))
+
+
+class LinearObservation:
+    """z = (x, y, theta, fx, fy) with diagonal noise."""
+
+    def expected(self, states: Tensor, force_n: Tensor) -> Tensor:
+        return torch.cat([states[..., 0:3], force_n], -1)
+
+    def noise_var(self, observation: Tensor) -> Tensor:
+        noise = as_tensor([POSITION_VAR] * 3 + [FORCE_VAR] * 2)
+        return noise.expand(observation.shape).clone()
+
+
+def make_inputs(batch: tuple[int, ...] = (), half_extent_m: float = 0.5) -> ProcessInput:
+    zeros = torch.zeros(batch, dtype=DTYPE)
+    return ProcessInput(
+        tcp=torch.zeros((*batch, 6), dtype=DTYPE),
+        pd_rad=zeros,
+        is_pull=zeros,
+        link=torch.zeros(batch, dtype=torch.int64),
+        link_size_m=torch.full((*batch, 1, 2), half_extent_m, dtype=DTYPE),
+        link_offset=torch.zeros((*batch, 1, 3), dtype=DTYPE),
+    )
+
+
+def prior_belief() -> Belief:
+    return Belief(as_tensor(PRIOR_MEAN), torch.diag(as_tensor(PRIOR_VAR)))
+
+
+@dataclass
+class JointSystem:
+    """The toy as one linear system s' = Phi s + b + q, z = H s + r."""
+
+    transition: NDArray[np.float64]
+    offset: NDArray[np.float64]
+    process_cov: NDArray[np.float64]
+    observation: NDArray[np.float64]
+    noise_cov: NDArray[np.float64]
+
+
+def joint_system() -> JointSystem:
+    transition = np.eye(10)
+    transition[0:3, 3:6] = DT_S * np.eye(3)
+    transition[3:6, 6:10] = DT_S * ACCEL_GAIN
+    offset = np.concatenate([np.zeros(3), DT_S * ACCEL_OFFSET, np.zeros(4)])
+    observation = np.zeros((5, 10))
+    observation[0:3, 0:3] = np.eye(3)
+    observation[3:5, 6:10] = FORCE_GAIN
+    return JointSystem(
+        transition=transition,
+        offset=offset,
+        process_cov=np.diag(np.concatenate([PROCESS_VAR, np.zeros(4)])),
+        observation=observation,
+        noise_cov=np.diag([POSITION_VAR] * 3 + [FORCE_VAR] * 2),
+    )
+
+
+def simulate(system: JointSystem, steps: int, seed: int) -> NDArray[np.float64]:
+    """Observations [steps, 5] of a true trajectory starting at rest."""
+    rng = np.random.default_rng(seed)
+    state = np.concatenate([np.zeros(6), TRUE_PARAMETERS])
+    observations = []
+    for _ in range(steps):
+        noise = rng.multivariate_normal(np.zeros(10), system.process_cov)
+        state = system.transition @ state + system.offset + noise
+        z_noise = rng.multivariate_normal(np.zeros(5), system.noise_cov)
+        observations.append(system.observation @ state + z_noise)
+    return np.array(observations)
+
+
+def kalman_filter(
+    system: JointSystem, observations: NDArray[np.float64]
+) -> list[tuple[NDArray[np.float64], NDArray[np.float64]]]:
+    """Plain Kalman filter on the joint state: (mean, cov) after each step."""
+    mean, cov = PRIOR_MEAN.astype(float), np.diag(PRIOR_VAR)
+    history = []
+    for z in observations:
+        mean = system.transition @ mean + system.offset
+        cov = system.transition @ cov @ system.transition.T + system.process_cov
+        innovation_cov = system.observation @ cov @ system.observation.T + system.noise_cov
+        gain = np.linalg.solve(innovation_cov, system.observation @ cov).T
+        mean = mean + gain @ (z - system.observation @ mean)
+        cov = cov - gain @ innovation_cov @ gain.T
+        history.append((mean, cov))
+    return history
+
+
+def toy_filter(sigma_points: int, process: LinearProcess | None = None) -> DualFilter:
+    return DualFilter(LAYOUT, process or LinearProcess(), LinearObservation(), sigma_points)
+
+
+@pytest.mark.parametrize("step", [0, 10, 40])
+def test_one_step_from_a_kalman_posterior_matches_the_kalman_step(step: int) -> None:
+    """Monte-Carlo error only: means within 0.1 KF std, standard deviations within 5 %."""
+    system = joint_system()
+    observations = simulate(system, steps=step + 1, seed=3)
+    reference = kalman_filter(system, observations)
+    start = prior_belief()
+    if step > 0:
+        start = Belief(as_tensor(reference[step - 1][0]), as_tensor(reference[step - 1][1]))
+    generator = torch.Generator().manual_seed(step)
+    belief = toy_filter(sigma_points=20000).step(
+        start, make_inputs(), DT_S, as_tensor(observations[step]), generator
+    )
+    kf_mean, kf_cov = reference[step]
+    kf_std = np.sqrt(np.diag(kf_cov))
+    assert np.all(np.abs(belief.mean.numpy() - kf_mean) < 0.1 * kf_std)
+    assert np.all(np.abs(np.sqrt(np.diag(belief.cov.numpy())) / kf_std - 1) < 0.05)
+
+
+def test_linear_gaussian_toy_tracks_the_joint_kalman_filter_for_50_steps() -> None:
+    """Tolerances in KF standard deviations, about 1.5 times the worst of seeds 11-15. The
+    static parameters accumulate the per-step Monte-Carlo error (0.03 std at C = 2000) and
+    pass it to the velocities; the positions forget it."""
+    system = joint_system()
+    observations = simulate(system, steps=50, seed=3)
+    reference = kalman_filter(system, observations)
+    dual = toy_filter(sigma_points=4000)
+    generator = torch.Generator().manual_seed(11)
+    belief, inputs = prior_belief(), make_inputs()
+    for z, (kf_mean, kf_cov) in zip(observations, reference, strict=True):
+        belief = dual.step(belief, inputs, DT_S, as_tensor(z), generator)
+        kf_std = np.sqrt(np.diag(kf_cov))
+        mean_error = np.abs(belief.mean.numpy() - kf_mean) / kf_std
+        std_error = np.abs(np.sqrt(np.diag(belief.cov.numpy())) / kf_std - 1)
+        assert mean_error[:6].max() < 0.6 and mean_error[6:].max() < 1.2, mean_error
+        assert std_error[:6].max() < 0.1 and std_error[6:].max() < 0.35, std_error
+    final_error = np.abs(belief.mean.numpy()[6:8] - TRUE_PARAMETERS[:2])
+    assert np.all(final_error < 3 * np.sqrt(np.diag(reference[-1][1])[6:8]))
+
+
+def test_liu_west_keeps_the_weighted_particle_moments() -> None:
+    generator = torch.Generator().manual_seed(0)
+    particles = torch.randn(3, 500, 4, generator=generator, dtype=DTYPE) * 2.0 + 1.0
+    weights = torch.softmax(torch.randn(3, 500, generator=generator, dtype=DTYPE), -1)
+    expected_mean = (weights[..., None] * particles).sum(-2)
+    deviation = particles - expected_mean[..., None, :]
+    expected_cov = torch.einsum("bc,bci,bcj->bij", weights, deviation, deviation)
+    for delta in (0.5, 0.97, 1.0):
+        mean, cov = liu_west(particles, weights, delta)
+        torch.testing.assert_close(mean, expected_mean, rtol=0, atol=1e-12)
+        torch.testing.assert_close(cov, expected_cov, rtol=0, atol=1e-12)
+
+
+def random_spd(size: int, generator: torch.Generator) -> Tensor:
+    root = torch.randn(size, size, generator=generator, dtype=DTYPE)
+    return root @ root.T + 0.1 * torch.eye(size, dtype=DTYPE)
+
+
+@pytest.mark.parametrize("kappa", [0.0, 1.0, 3.0])
+def test_woodbury_update_equals_the_dense_update(kappa: float) -> None:
+    generator = torch.Generator().manual_seed(1)
+    d, k = 6, 30
+    mean = torch.randn(2, d, generator=generator, dtype=DTYPE)
+    cov = torch.stack([random_spd(d, generator), random_spd(d, generator)])
+    points, weights = unscented_points(mean, torch.linalg.cholesky(cov), kappa)
+    gain = torch.randn(k, d, generator=generator, dtype=DTYPE)
+    expected = torch.sin(points @ gain.T)
+    expected_mean = (weights[:, None] * expected).sum(-2)
+    observation = torch.randn(2, k, generator=generator, dtype=DTYPE)
+    noise_var = torch.rand(2, k, generator=generator, dtype=DTYPE) + 0.05
+    state_dev, obs_dev = points - mean[..., None, :], expected - expected_mean[..., None, :]
+    innovation = observation - expected_mean
+    post_mean, post_cov = woodbury_update(mean, state_dev, obs_dev, weights, innovation, noise_var)
+    innovation_cov = obs_dev.mT @ (weights[:, None] * obs_dev) + torch.diag_embed(noise_var)
+    cross_cov = state_dev.mT @ (weights[:, None] * obs_dev)
+    kalman_gain = torch.linalg.solve(innovation_cov, cross_cov.mT).mT
+    dense_mean = mean + (kalman_gain @ innovation[..., None]).squeeze(-1)
+    dense_cov = cov - kalman_gain @ innovation_cov @ kalman_gain.mT
+    torch.testing.assert_close(post_mean, dense_mean, rtol=0, atol=1e-9)
+    torch.testing.assert_close(post_cov, dense_cov, rtol=0, atol=1e-9)
+
+
+def test_infeasible_points_never_reach_the_model_but_count_in_the_moments() -> None:
+    process = LinearProcess()
+    dual = toy_filter(sigma_points=400, process=process)
+    mean = as_tensor(PRIOR_MEAN.copy())
+    mean[6:10] = as_tensor([0.05, 0.05, 0.09, -0.09])
+    variance = as_tensor(PRIOR_VAR.copy())
+    variance[6:10] = 0.1**2
+    belief, inputs = Belief(mean, torch.diag(variance)), make_inputs(half_extent_m=0.1)
+    belief_pred, sigma_pred, _ = dual.predict(
+        belief, inputs, DT_S, torch.Generator().manual_seed(5)
+    )
+    sigma = sample_sigma_points(belief, 400, torch.Generator().manual_seed(5))
+    (model_states,) = process.calls
+    assert feasible(model_states, LAYOUT, inputs.link_size_m).all()
+    is_feasible = feasible(sigma, LAYOUT, inputs.link_size_m)
+    assert 0.2 < (~is_feasible).double().mean() < 0.95
+    torch.testing.assert_close(model_states[is_feasible], sigma[is_feasible], rtol=0, atol=0)
+    torch.testing.assert_close(sigma_pred[..., 6:], sigma[..., 6:], rtol=0, atol=0)
+    assert (sigma_pred[..., 6] <= 0).any()
+    uniform = torch.full((400,), 1 / 400, dtype=DTYPE)
+    moments = weighted_moments(sigma_pred, uniform)
+    torch.testing.assert_close(belief_pred.mean, moments[0], rtol=0, atol=1e-14)
+    torch.testing.assert_close(belief_pred.cov, moments[1], rtol=0, atol=1e-14)
+    parameter_std = belief_pred.cov.diagonal()[6:].sqrt()
+    torch.testing.assert_close(parameter_std, torch.full_like(parameter_std, 0.1), rtol=0.1, atol=0)
+
+
+def test_projection_lands_on_the_feasible_set() -> None:
+    layout = StateLayout(2)
+    generator = torch.Generator().manual_seed(2)
+    states = torch.randn(4, 50, layout.size, generator=generator, dtype=DTYPE) * 0.2
+    link_size_m = torch.tensor([[0.1, 0.05], [0.2, 0.1]], dtype=DTYPE).expand(4, 2, 2)
+    projected = project_feasible(states, layout, link_size_m)
+    assert feasible(projected, layout, link_size_m).all()
+    assert not feasible(states, layout, link_size_m).all()
+    is_feasible = feasible(states, layout, link_size_m)
+    assert torch.equal(projected[is_feasible], states[is_feasible])
+
+
+def assert_spd(cov: Tensor) -> None:
+    assert torch.equal(cov, cov.mT)
+    assert int(torch.linalg.cholesky_ex(cov).info) == 0
+    assert torch.linalg.eigvalsh(cov).min() > 0
+
+
+def test_covariance_stays_spd_for_1000_steps() -> None:
+    system = joint_system()
+    observations = simulate(system, steps=1000, seed=4)
+    dual = toy_filter(sigma_points=100)
+    generator = torch.Generator().manual_seed(12)
+    belief, inputs = prior_belief(), make_inputs()
+    for z in observations:
+        belief = dual.step(belief, inputs, DT_S, as_tensor(z), generator)
+        assert_spd(belief.cov)
+    assert torch.all((belief.mean[6:8] - as_tensor(TRUE_PARAMETERS[:2])).abs() < 0.1)
+
+
+def batch_inputs(count: int) -> ProcessInput:
+    inputs = make_inputs((count,))
+    sizes = torch.tensor([0.5, 0.3, 0.2], dtype=DTYPE)[:count]
+    return replace(inputs, link_size_m=sizes[:, None, None].expand(count, 1, 2))
+
+
+def test_batch_equals_separate_runs() -> None:
+    generator = torch.Generator().manual_seed(6)
+    dual = toy_filter(sigma_points=200)
+    observations = as_tensor(simulate(joint_system(), steps=3, seed=7))
+    shifts = torch.tensor([0.0, 0.1, -0.2], dtype=DTYPE)
+    batched = Belief(prior_belief().mean + shifts[:, None], prior_belief().cov.expand(3, 10, 10))
+    separate = [Belief(batched.mean[b], batched.cov[b]) for b in range(3)]
+    inputs = batch_inputs(3)
+    for z in observations:
+        state_noise = torch.randn(3, 200, 10, generator=generator, dtype=DTYPE)
+        process_noise = torch.randn(3, 200, 6, generator=generator, dtype=DTYPE)
+        batched = dual.update(
+            *dual.propagate(batched, inputs, DT_S, state_noise, process_noise),
+            z + shifts[:, None],
+        )
+        for b in range(3):
+            one_inputs = replace(inputs, link_size_m=inputs.link_size_m[b])
+            predicted = dual.propagate(
+                separate[b], one_inputs, DT_S, state_noise[b], process_noise[b]
+            )
+            separate[b] = dual.update(*predicted, z + shifts[b])
+    for b in range(3):
+        torch.testing.assert_close(batched.mean[b], separate[b].mean, rtol=0, atol=1e-12)
+        torch.testing.assert_close(batched.cov[b], separate[b].cov, rtol=0, atol=1e-12)
+
+
+def test_gradients_flow_from_the_posterior_to_a_model_parameter() -> None:
+    accel_gain = as_tensor(ACCEL_GAIN).requires_grad_(True)
+    dual = toy_filter(sigma_points=100, process=LinearProcess(accel_gain))
+    generator = torch.Generator().manual_seed(8)
+    observations = as_tensor(simulate(joint_system(), steps=5, seed=9))
+    belief, inputs = prior_belief(), batch_inputs(2)
+    belief = Belief(belief.mean.expand(2, 10), belief.cov.expand(2, 10, 10))
+    for z in observations:
+        belief = dual.step(belief, inputs, DT_S, z.expand(2, 5), generator)
+    (belief.mean.sum() + belief.cov.diagonal(dim1=-2, dim2=-1).sum()).backward()
+    assert accel_gain.grad is not None
+    assert torch.isfinite(accel_gain.grad).all()
+    assert accel_gain.grad.abs().max() > 0
+
+
+def test_cholesky_safe_handles_a_singular_covariance() -> None:
+    vector = torch.tensor([[1.0, 2.0, 3.0]], dtype=DTYPE)
+    factor = cholesky_safe(vector.T @ vector)
+    assert torch.isfinite(factor).all()
+    torch.testing.assert_close(factor @ factor.T, vector.T @ vector, rtol=0, atol=1e-9)
+
+
+class NanProcess(LinearProcess):
+    def predict(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
+        prediction = super().predict(states, inputs, dt_s)
+        pose = prediction.pose.clone()
+        pose[..., 7, 4] = float("nan")
+        return replace(prediction, pose=pose)
+
+
+class NanObservation(LinearObservation):
+    def expected(self, states: Tensor, force_n: Tensor) -> Tensor:
+        expected = super().expected(states, force_n).clone()
+        expected[..., 3, 1] = float("inf")
+        return expected
+
+
+def test_nan_raises_a_data_error_naming_the_entry() -> None:
+    generator = torch.Generator().manual_seed(10)
+    observation = as_tensor([0.0, 0.0, 0.0, 1.0, 1.0])
+    bad_observation = observation.clone()
+    bad_observation[2] = float("nan")
+    with pytest.raises(DataError, match=r"observation\[2\]"):
+        toy_filter(10).step(prior_belief(), make_inputs(), DT_S, bad_observation, generator)
+    with pytest.raises(DataError, match=r"prediction\.pose\[vy_0\]"):
+        dual = toy_filter(10, NanProcess())
+        dual.step(prior_belief(), make_inputs(), DT_S, observation, generator)
+    with pytest.raises(DataError, match=r"expected observation\[1\] = inf at leading index \(3,\)"):
+        dual = DualFilter(LAYOUT, LinearProcess(), NanObservation(), 10)
+        dual.step(prior_belief(), make_inputs(), DT_S, observation, generator)
+    mean = prior_belief().mean.clone()
+    mean[6] = float("nan")
+    with pytest.raises(DataError, match=r"m_0"):
+        toy_filter(10).step(
+            Belief(mean, prior_belief().cov), make_inputs(), DT_S, observation, generator
+        )
+
+
+def test_invalid_settings_are_rejected() -> None:
+    with pytest.raises(ValueError, match="liu_west_delta"):
+        DualFilter(LAYOUT, LinearProcess(), LinearObservation(), liu_west_delta=0.2)
+    with pytest.raises(ValueError, match="ukf_kappa"):
+        DualFilter(LAYOUT, LinearProcess(), LinearObservation(), ukf_kappa=-3.0)

@@ -1,0 +1,443 @@
+"""Process models of the dual filter: conformance of the GNN, feed-forward and analytical
+models, link-count generality, checkpoints, and the quasi-static pushing physics checked
+against known answers and an independent numerical solution."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import least_squares, minimize
+from simctx import TestContext
+from torch import Tensor
+from vistac.errors import ConfigError, DataError
+from vistac.plugins.filters.analytical import (
+    characteristic_length_m,
+    quasi_static_push,
+)
+from vistac.plugins.filters.models import (
+    AnalyticalProcessModel,
+    FFProcessModel,
+    GNNProcessModel,
+    sidecar_path,
+)
+from vistac.plugins.filters.nets import GraphProcessNet, rotate
+from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput, StateLayout
+
+HALF_M = 0.045
+GAP_M = 0.004
+SPEED_MPS = 0.025
+DT_S = 0.05
+C = 7
+
+
+def scenario(
+    batch: tuple[int, ...],
+    n_links: int,
+    count: int = C,
+    link: int = 0,
+    is_pull: float = 0.0,
+    seed: int = 0,
+) -> tuple[Tensor, ProcessInput]:
+    """A chain of square links along +x at y = 0.45, pushed along +x on link 0's -x side near
+    its middle; sigma points scattered around the nominal state. states: [*batch, count, n]."""
+    layout = StateLayout(n_links)
+    offset = torch.zeros(n_links, 3, dtype=DTYPE)
+    offset[:, 0] = torch.arange(n_links, dtype=DTYPE) * (2 * HALF_M + GAP_M)
+    pose = torch.zeros(n_links, 6, dtype=DTYPE)
+    pose[:, :3] = offset + torch.tensor([0.0, 0.45, 0.0], dtype=DTYPE)
+    params = torch.tensor([[0.8, 0.3, 0.005, -0.004]], dtype=DTYPE).expand(n_links, 4)
+    mean = torch.cat([pose.flatten(), params.flatten(), torch.full((n_links - 1,), 0.2)])
+    spread = torch.cat(
+        [
+            torch.tensor([0.002, 0.002, 0.02, 0.002, 0.002, 0.01]).repeat(n_links),
+            torch.tensor([0.1, 0.03, 0.003, 0.003]).repeat(n_links),
+            torch.full((n_links - 1,), 0.05),
+        ]
+    ).to(DTYPE)
+    generator = torch.Generator().manual_seed(seed)
+    noise = torch.randn(*batch, count, layout.size, generator=generator, dtype=DTYPE)
+    states = mean + spread * noise
+    tcp = torch.tensor([-HALF_M - 0.009, 0.46, 0.0, SPEED_MPS, 0.0, 0.0], dtype=DTYPE)
+    inputs = ProcessInput(
+        tcp=tcp.expand(*batch, 6),
+        pd_rad=torch.zeros(batch, dtype=DTYPE),
+        is_pull=torch.full(batch, is_pull, dtype=DTYPE),
+        link=torch.full(batch, link, dtype=torch.int64),
+        link_size_m=torch.full((*batch, n_links, 2), HALF_M, dtype=DTYPE),
+        link_offset=offset.expand(*batch, n_links, 3),
+    )
+    return states, inputs
+
+
+def build(cls: type, tmp_path: Path, seed: int = 0, **options: Any) -> Any:
+    return TestContext(tmp_path, seed).add(cls, **options)
+
+
+MODELS: dict[str, tuple[Callable[[Path], Any], int]] = {
+    "gnn": (lambda tmp: build(GNNProcessModel, tmp, hidden=32), 2),
+    "ff": (lambda tmp: build(FFProcessModel, tmp, hidden=32, n_links=2), 2),
+    "analytical": (lambda tmp: build(AnalyticalProcessModel, tmp), 1),
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# Conformance
+
+
+def parts(prediction: Prediction) -> tuple[Tensor, Tensor, Tensor]:
+    return prediction.pose, prediction.force_n, prediction.process_var
+
+
+def check_prediction(prediction: Prediction, batch: tuple[int, ...], n_links: int) -> None:
+    assert prediction.pose.shape == (*batch, C, 6 * n_links)
+    assert prediction.force_n.shape == (*batch, C, 2)
+    assert prediction.process_var.shape in {(*batch, 6 * n_links), (*batch, C, 6 * n_links)}
+    for value in parts(prediction):
+        assert value.dtype == DTYPE
+        assert torch.isfinite(value).all()
+    assert (prediction.process_var > 0).all()
+
+
+@pytest.mark.parametrize("name", MODELS)
+@pytest.mark.parametrize("batch", [(), (2,)])
+def test_process_model_conformance(name: str, batch: tuple[int, ...], tmp_path: Path) -> None:
+    factory, n_links = MODELS[name]
+    model = factory(tmp_path)
+    assert model.kind == "process_model"
+    assert model.n_links in (None, n_links)
+    states, inputs = scenario(batch, n_links)
+    before = states.clone()
+
+    prediction = model.predict(states, inputs, DT_S)
+
+    check_prediction(prediction, batch, n_links)
+    assert torch.equal(states, before), "predict must not change the states"
+    again = model.predict(states, inputs, DT_S)
+    for first, second in zip(parts(prediction), parts(again), strict=True):
+        assert torch.equal(first, second)
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_process_model_is_differentiable(name: str, tmp_path: Path) -> None:
+    factory, n_links = MODELS[name]
+    model = factory(tmp_path)
+    states, inputs = scenario((2,), n_links)
+    states.requires_grad_(True)
+    prediction = model.predict(states, inputs, DT_S)
+    loss = sum(value.square().sum() for value in parts(prediction))
+    assert isinstance(loss, Tensor)
+    loss.backward()
+    assert states.grad is not None and torch.isfinite(states.grad).all()
+    assert states.grad.abs().sum() > 0
+    if hasattr(model, "net"):
+        for key, parameter in model.net.named_parameters():
+            assert parameter.grad is not None, key
+            assert torch.isfinite(parameter.grad).all(), key
+            assert parameter.grad.abs().sum() > 0, key
+
+
+def test_gnn_runs_on_one_two_and_three_links(tmp_path: Path) -> None:
+    model = build(GNNProcessModel, tmp_path, hidden=32)
+    for n_links in (1, 2, 3):
+        for link in range(n_links):
+            states, inputs = scenario((2,), n_links, link=link)
+            check_prediction(model.predict(states, inputs, DT_S), (2,), n_links)
+
+
+def test_gnn_is_translation_and_rotation_invariant() -> None:
+    torch.manual_seed(0)
+    net = GraphProcessNet(hidden=16)
+    states, inputs = scenario((), 3, link=1)
+    shift, angle = torch.tensor([0.3, -0.2], dtype=DTYPE), torch.tensor(0.7, dtype=DTYPE)
+
+    def move(pose: Tensor) -> Tensor:
+        """Rigidly move [..., 6 L] poses (or the [6] TCP) by (shift, angle)."""
+        moved = pose.unflatten(-1, (-1, 6)).clone()
+        moved[..., :2] = rotate(moved[..., :2], angle) + shift
+        moved[..., 2] = moved[..., 2] + angle
+        moved[..., 3:5] = rotate(moved[..., 3:5], angle)
+        return moved.flatten(-2)
+
+    layout = StateLayout(3)
+    moved_states = torch.cat([move(states[..., layout.pose_slice]), states[..., 18:]], -1)
+    moved_inputs = ProcessInput(
+        tcp=move(inputs.tcp),
+        pd_rad=inputs.pd_rad + angle,
+        is_pull=inputs.is_pull,
+        link=inputs.link,
+        link_size_m=inputs.link_size_m,
+        link_offset=inputs.link_offset,
+    )
+    original = net(states, inputs, DT_S)
+    moved = net(moved_states, moved_inputs, DT_S)
+    torch.testing.assert_close(moved.pose, move(original.pose))
+    torch.testing.assert_close(moved.force_n, rotate(original.force_n, angle))
+
+
+def test_ff_rejects_another_link_count(tmp_path: Path) -> None:
+    model = build(FFProcessModel, tmp_path, n_links=2)
+    states, inputs = scenario((), 3)
+    with pytest.raises(ValueError, match=r"n_links=2 \(state size 21\), got state size 32"):
+        model.predict(states, inputs, DT_S)
+
+
+def test_analytical_rejects_two_links(tmp_path: Path) -> None:
+    states, inputs = scenario((), 2)
+    with pytest.raises(ValueError, match="one link"):
+        build(AnalyticalProcessModel, tmp_path).predict(states, inputs, DT_S)
+
+
+# ---------------------------------------------------------------------------------------------
+# Checkpoints
+
+
+@pytest.mark.parametrize(
+    ("cls", "options"), [(GNNProcessModel, {"hidden": 64}), (FFProcessModel, {"n_links": 2})]
+)
+def test_checkpoint_round_trip(cls: type, options: dict[str, Any], tmp_path: Path) -> None:
+    trained = build(cls, tmp_path, seed=1, **options)
+    trained.save_checkpoint(tmp_path / "model.pt")
+    assert (tmp_path / "model.pt").stat().st_size < 2_000_000
+    assert sidecar_path(tmp_path / "model.pt").is_file()
+
+    loaded = build(cls, tmp_path, seed=2, checkpoint="model.pt", **options)
+    fresh = build(cls, tmp_path, seed=2, **options)
+    states, inputs = scenario((), 2)
+    expected = trained.predict(states, inputs, DT_S)
+    got = loaded.predict(states, inputs, DT_S)
+    for first, second in zip(parts(expected), parts(got), strict=True):
+        assert torch.equal(first, second)
+    assert not torch.equal(expected.pose, fresh.predict(states, inputs, DT_S).pose)
+
+
+def test_missing_checkpoint_is_a_config_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"gone\.pt.*vistac train"):
+        build(GNNProcessModel, tmp_path, checkpoint="gone.pt")
+
+
+@pytest.mark.parametrize("damage", ["truncated", "garbage"])
+def test_corrupted_checkpoint_is_a_data_error(damage: str, tmp_path: Path) -> None:
+    build(GNNProcessModel, tmp_path).save_checkpoint(tmp_path / "broken.pt")
+    data = (tmp_path / "broken.pt").read_bytes()
+    damaged = data[: len(data) // 2] if damage == "truncated" else b"not a checkpoint\n" * 9
+    (tmp_path / "broken.pt").write_bytes(damaged)
+    with pytest.raises(DataError, match=r"broken\.pt is not a readable.*vistac train"):
+        build(GNNProcessModel, tmp_path, checkpoint="broken.pt")
+
+
+def test_checkpoint_of_another_architecture_is_a_data_error(tmp_path: Path) -> None:
+    build(GNNProcessModel, tmp_path, hidden=32).save_checkpoint(tmp_path / "small.pt")
+    with pytest.raises(DataError, match=r"small\.pt.*hidden: saved 32, configured 64"):
+        build(GNNProcessModel, tmp_path, hidden=64, checkpoint="small.pt")
+    # Without the sidecar the weights' shapes tell.
+    sidecar_path(tmp_path / "small.pt").unlink()
+    with pytest.raises(DataError, match=r"small\.pt does not fit.*shape: f_e\.0\.weight"):
+        build(GNNProcessModel, tmp_path, hidden=64, checkpoint="small.pt")
+
+
+def test_checkpoint_with_foreign_keys_is_a_data_error(tmp_path: Path) -> None:
+    torch.save({"layer.weight": torch.zeros(3)}, tmp_path / "other.pt")
+    with pytest.raises(DataError, match=r"other\.pt.*missing: .*unexpected: layer\.weight"):
+        build(FFProcessModel, tmp_path, checkpoint="other.pt")
+
+
+def test_checkpoint_of_another_model_is_a_data_error(tmp_path: Path) -> None:
+    build(GNNProcessModel, tmp_path).save_checkpoint(tmp_path / "gnn.pt")
+    with pytest.raises(DataError, match=r"gnn\.pt was saved by 'filters\.gnn'"):
+        build(FFProcessModel, tmp_path, checkpoint="gnn.pt")
+
+
+# ---------------------------------------------------------------------------------------------
+# Analytical model: known answers
+
+
+def single_push(tcp_y_m: float, com: tuple[float, float] = (0.0, 0.0)) -> Prediction:
+    """One noiseless sigma point: link 0 at the origin, pushed along +x on its -x side."""
+    states = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.8, 0.3, *com]], dtype=DTYPE)
+    inputs = ProcessInput(
+        tcp=torch.tensor([-HALF_M - 0.01, tcp_y_m, 0.0, SPEED_MPS, 0.0, 0.0], dtype=DTYPE),
+        pd_rad=torch.tensor(0.0, dtype=DTYPE),
+        is_pull=torch.tensor(0.0, dtype=DTYPE),
+        link=torch.tensor(0),
+        link_size_m=torch.full((1, 2), HALF_M, dtype=DTYPE),
+        link_offset=torch.zeros(1, 3, dtype=DTYPE),
+    )
+    model = AnalyticalProcessModel(AnalyticalProcessModel.Config(), TestContext(Path(".")))
+    return model.predict(states, inputs, DT_S)
+
+
+def test_push_through_the_com_translates_at_pusher_speed() -> None:
+    prediction = single_push(0.0)
+    expected = torch.tensor([SPEED_MPS * DT_S, 0.0, 0.0, SPEED_MPS, 0.0, 0.0], dtype=DTYPE)
+    torch.testing.assert_close(prediction.pose[0], expected, rtol=0, atol=1e-12)
+    friction_n = 0.3 * 0.8 * 9.81
+    torch.testing.assert_close(
+        prediction.force_n[0], torch.tensor([-friction_n, 0.0], dtype=DTYPE), rtol=0, atol=1e-9
+    )
+
+
+def test_offset_push_turns_the_link_away_from_the_pusher() -> None:
+    above = single_push(0.02).pose[0]
+    below = single_push(-0.02).pose[0]
+    assert above[5] < 0 < below[5], "a push above the CoM turns clockwise"
+    assert 0 < above[0] < SPEED_MPS * DT_S
+    torch.testing.assert_close(above[5], -below[5])
+
+
+def test_push_through_offset_com_turns_the_link() -> None:
+    prediction = single_push(0.0, com=(0.0, -0.01))
+    assert prediction.pose[0, 5] < 0
+
+
+def test_no_motion_without_contact() -> None:
+    prediction = single_push(0.1)
+    torch.testing.assert_close(prediction.pose[0], torch.zeros(6, dtype=DTYPE))
+    torch.testing.assert_close(prediction.force_n[0], torch.zeros(2, dtype=DTYPE))
+
+
+def test_pull_moves_the_link_with_the_gripper(tmp_path: Path) -> None:
+    states, inputs = scenario((), 1, is_pull=1.0)
+    prediction = build(AnalyticalProcessModel, tmp_path).predict(states, inputs, DT_S)
+    moved = prediction.pose - states[..., :6]
+    torch.testing.assert_close(moved[:, 0], torch.full((C,), SPEED_MPS * DT_S, dtype=DTYPE))
+    torch.testing.assert_close(moved[:, 1:3], torch.zeros(C, 2, dtype=DTYPE))
+    friction_n = (states[:, 6] * states[:, 7] * 9.81).unsqueeze(-1)
+    torch.testing.assert_close(prediction.force_n[:, 0:1], -friction_n)
+
+
+def test_characteristic_length_of_a_centred_square() -> None:
+    """Mean distance from the centre of a unit square: (sqrt 2 + asinh 1) / 6 (~0.3826)."""
+    c = characteristic_length_m(torch.tensor([0.5, 0.5], dtype=DTYPE), torch.zeros(2, dtype=DTYPE))
+    assert float(c) == pytest.approx((math.sqrt(2) + math.asinh(1.0)) / 6.0, rel=1e-12)
+
+
+def test_characteristic_length_matches_sampling() -> None:
+    rng = np.random.default_rng(3)
+    half, com = np.array([0.06, 0.03]), np.array([0.02, -0.01])
+    points = rng.uniform(-half, half, size=(400_000, 2))
+    sampled = np.linalg.norm(points - com, axis=1).mean()
+    c = characteristic_length_m(torch.tensor(half), torch.tensor(com))
+    assert float(c) == pytest.approx(sampled, rel=3e-3)
+
+
+# ---------------------------------------------------------------------------------------------
+# Analytical model: agreement with an independent solution
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> float:
+    return float(a[0] * b[1] - a[1] * b[0])
+
+
+def independent_push(
+    p: np.ndarray, n: np.ndarray, u: np.ndarray, f_max: float, c: float, mu: float
+) -> tuple[np.ndarray, bool]:
+    """Quasi-static push solved from first principles with scipy. Returns (twist [3], sticking).
+
+    Sticking: among the twists whose contact point moves with the pusher, the one dissipating
+    the least power on the ellipsoidal limit surface (``D² = f_max² |v|² + m_max² omega²``),
+    valid when the wrench normal to the limit surface is a force inside the friction cone.
+    Slipping: the twist whose limit-surface wrench is a point force at the contact on a friction
+    cone edge, with the contact's normal velocity equal to the pusher's; the edge is the one
+    whose tangential force points along the pusher's sliding relative to the object.
+    """
+    m_max = c * f_max
+    t = np.array([-n[1], n[0]])
+
+    def twist_for(omega: float) -> np.ndarray:
+        velocity = u - omega * np.array([-p[1], p[0]])
+        return np.array([*velocity, omega])
+
+    def power_sq(x: np.ndarray) -> tuple[float, np.ndarray]:
+        """Normalised D² and its derivative in omega = x * SPEED_MPS / c."""
+        omega = float(x[0]) * SPEED_MPS / c
+        twist = twist_for(omega)
+        value = (twist[0] ** 2 + twist[1] ** 2 + (c * twist[2]) ** 2) / SPEED_MPS**2
+        d_velocity = -np.array([-p[1], p[0]]) * SPEED_MPS / c
+        d_value = 2 * (twist[:2] @ d_velocity + c * twist[2] * SPEED_MPS) / SPEED_MPS**2
+        return value, np.array([d_value])
+
+    x = minimize(power_sq, np.zeros(1), jac=True, method="BFGS", options={"gtol": 1e-14}).x
+    stick = twist_for(float(x[0]) * SPEED_MPS / c)
+    force = f_max**2 * stick[:2]
+    assert m_max**2 * stick[2] == pytest.approx(_cross(p, force), rel=1e-6, abs=1e-12)
+    if abs(force @ t) <= mu * (force @ n):
+        return stick, True
+
+    consistent = []
+    for side in (1.0, -1.0):
+        edge = n + side * mu * t
+
+        def residual(twist: np.ndarray, edge: np.ndarray = edge) -> np.ndarray:
+            contact_velocity = twist[:2] + twist[2] * np.array([-p[1], p[0]])
+            return np.array(
+                [
+                    (contact_velocity - u) @ n / SPEED_MPS,
+                    _cross(twist[:2], edge) / SPEED_MPS,
+                    (c**2 * twist[2] - _cross(p, twist[:2])) / (c * SPEED_MPS),
+                ]
+            )
+
+        twist = least_squares(residual, np.array([*u, 0.0]), xtol=1e-15, ftol=1e-15).x
+        sliding = (u - twist[:2] - twist[2] * np.array([-p[1], p[0]])) @ t
+        if twist[:2] @ edge > 0 and sliding * side > 0:
+            consistent.append(twist)
+    assert len(consistent) == 1
+    return consistent[0], False
+
+
+def random_push(rng: np.random.Generator) -> dict[str, Any]:
+    half = rng.uniform(0.03, 0.07, size=2)
+    com = rng.uniform(-0.3, 0.3, size=2) * half
+    contact = np.array([-half[0], rng.uniform(-0.95, 0.95) * half[1]])
+    angle = rng.uniform(-math.pi, math.pi)
+    turn = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    beta = rng.uniform(-1.3, 1.3)
+    return {
+        "p": turn @ (contact - com),
+        "n": turn @ np.array([1.0, 0.0]),
+        "u": turn @ (SPEED_MPS * np.array([math.cos(beta), math.sin(beta)])),
+        "f_max": rng.uniform(0.5, 5.0),
+        "c": float(characteristic_length_m(torch.tensor(half), torch.tensor(com))),
+        "mu": rng.uniform(0.1, 1.0),
+    }
+
+
+def test_quasi_static_push_agrees_with_an_independent_solution() -> None:
+    rng = np.random.default_rng(7)
+    cases = [random_push(rng) for _ in range(60)]
+    result = quasi_static_push(
+        *(torch.tensor(np.array([case[key] for case in cases])) for key in "pnu"),
+        *(torch.tensor([case[key] for case in cases]) for key in ("f_max", "c", "mu")),
+    )
+    kinds = set()
+    for i, case in enumerate(cases):
+        twist, sticking = independent_push(**case)
+        kinds.add(sticking)
+        assert bool(result.sticking[i]) == sticking, i
+        # Relative to the natural scales: pusher speed, speed / c, f_max.
+        speed_error = np.abs(result.velocity_mps[i].numpy() - twist[:2]).max() / SPEED_MPS
+        rate_error = abs(float(result.omega_radps[i]) - twist[2]) * case["c"] / SPEED_MPS
+        f_max, m_max = case["f_max"], case["f_max"] * case["c"]
+        force = f_max**2 * twist[:2] / math.hypot(f_max * math.hypot(*twist[:2]), m_max * twist[2])
+        force_error = np.abs(result.force_n[i].numpy() - force).max() / f_max
+        assert max(speed_error, rate_error, force_error) < 1e-6, (i, sticking)
+    assert kinds == {True, False}, "the random cases must cover sticking and slipping"
+
+
+def test_pusher_moving_away_does_not_push() -> None:
+    result = quasi_static_push(
+        torch.tensor([-0.04, 0.01], dtype=DTYPE),
+        torch.tensor([1.0, 0.0], dtype=DTYPE),
+        torch.tensor([-0.02, 0.01], dtype=DTYPE),
+        torch.tensor(2.0, dtype=DTYPE),
+        torch.tensor(0.03, dtype=DTYPE),
+        0.5,
+    )
+    assert float(result.velocity_mps.abs().sum()) == 0.0
+    assert float(result.force_n.abs().sum()) == 0.0
