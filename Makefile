@@ -29,9 +29,10 @@ $(STAMP): pyproject.toml | system-libs
 	$(BIN)/pip install -q -e ".[dev]"
 	touch $(STAMP)
 
+# Look, fit the shape, then push until the belief converges (GNN trained by
+# `vistac train skills/collect_pushes.yaml --preset tiny`, on objects other than rect2).
 demo: setup
-	$(BIN)/vistac run skills/collect_pushes.yaml --out $(DEMO_OUT) --overwrite \
-	  --set components.world.with.object=objects/rect2.yaml
+	$(BIN)/vistac run skills/explore_push.yaml --out $(DEMO_OUT) --overwrite
 
 test: setup
 	$(BIN)/python -m pytest -q

@@ -27,7 +27,10 @@ class ConfigError(VistacError):
 
     exit_code = 2
 
-    def __init__(self, issues: list[ConfigIssue], source: str = "") -> None:
+    def __init__(self, issues: list[ConfigIssue] | str, source: str = "") -> None:
+        """``issues``: the problems found, or one message."""
+        if isinstance(issues, str):
+            issues = [ConfigIssue("", issues)]
         self.issues = issues
         self.source = source
         prefix = f"{source}: " if source else ""

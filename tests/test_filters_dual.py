@@ -155,8 +155,14 @@ def kalman_filter(
     return history
 
 
+EXACT = {"min_ess_fraction": 0.0, "marginal_parameter_likelihood": False, "pose_std_floor": None}
+"""The textbook filter (eq. 31 weights, no pose floor): the one that matches the Kalman step."""
+
+
 def toy_filter(sigma_points: int, process: LinearProcess | None = None) -> DualFilter:
-    return DualFilter(LAYOUT, process or LinearProcess(), LinearObservation(), sigma_points)
+    return DualFilter(
+        LAYOUT, process or LinearProcess(), LinearObservation(), sigma_points, **EXACT
+    )
 
 
 @pytest.mark.parametrize("step", [0, 10, 40])
@@ -393,3 +399,24 @@ def test_invalid_settings_are_rejected() -> None:
         DualFilter(LAYOUT, LinearProcess(), LinearObservation(), liu_west_delta=0.2)
     with pytest.raises(ValueError, match="ukf_kappa"):
         DualFilter(LAYOUT, LinearProcess(), LinearObservation(), ukf_kappa=-3.0)
+
+
+def test_tempering_keeps_the_effective_sample_size() -> None:
+    from vistac.plugins.filters.dual import effective_sample_size, temper_log_weights
+
+    log_likelihood = -0.5 * torch.linspace(0.0, 400.0, 100, dtype=DTYPE)[None].repeat(2, 1)
+    log_likelihood[1] = 0.0  # already uniform: untouched
+    log_weights, beta = temper_log_weights(log_likelihood, 50.0)
+    ess = effective_sample_size(log_weights)
+    assert 49.0 < float(ess[0]) < 51.0 and float(beta[0]) < 1.0
+    assert float(beta[1]) == 1.0
+    torch.testing.assert_close(log_weights.exp().sum(-1), torch.ones(2, dtype=DTYPE))
+
+
+def test_pose_floor_widens_the_unscented_spread_only() -> None:
+    dual = DualFilter(LAYOUT, LinearProcess(), LinearObservation(), 10)
+    assert dual.pose_var_floor is not None and dual.pose_var_floor.shape == (LAYOUT.n_pose,)
+    with pytest.raises(ValueError, match="pose_std_floor"):
+        DualFilter(LAYOUT, LinearProcess(), LinearObservation(), pose_std_floor=(1.0,))
+    with pytest.raises(ValueError, match="min_ess_fraction"):
+        DualFilter(LAYOUT, LinearProcess(), LinearObservation(), min_ess_fraction=2.0)

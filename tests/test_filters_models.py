@@ -291,8 +291,37 @@ def test_offset_push_turns_the_link_away_from_the_pusher() -> None:
 
 
 def test_push_through_offset_com_turns_the_link() -> None:
-    prediction = single_push(0.0, com=(0.0, -0.01))
+    """The CoM's line of pushing misses the 24 mm wide pad: the link turns about its end."""
+    prediction = single_push(0.0, com=(0.0, -0.02))
     assert prediction.pose[0, 5] < 0
+
+
+def test_flat_pad_pushes_a_nearby_com_straight() -> None:
+    """The CoM's line of pushing meets the pad: the pressure centre moves there, no turn."""
+    prediction = single_push(0.0, com=(0.0, -0.01))
+    torch.testing.assert_close(prediction.pose[0, 5], torch.tensor(0.0, dtype=DTYPE))
+
+
+def test_line_contact_point() -> None:
+    from vistac.plugins.filters.analytical import line_contact
+
+    point = torch.tensor([-0.05, 0.0], dtype=DTYPE)
+    normal = torch.tensor([1.0, 0.0], dtype=DTYPE)
+    u = torch.tensor([0.02, 0.0], dtype=DTYPE)
+    half = torch.tensor([0.05, 0.05], dtype=DTYPE)
+
+    def contact(com_y: float, width: float = 0.012) -> Tensor:
+        com = torch.tensor([0.0, com_y], dtype=DTYPE)
+        return line_contact(point, normal, u, com, half, width)
+
+    torch.testing.assert_close(contact(0.005), torch.tensor([-0.05, 0.005], dtype=DTYPE))
+    torch.testing.assert_close(contact(-0.03), torch.tensor([-0.05, -0.012], dtype=DTYPE))
+    torch.testing.assert_close(contact(0.03, 0.0), point)
+    edge = line_contact(
+        torch.tensor([-0.05, 0.045], dtype=DTYPE), normal, u,
+        torch.tensor([0.0, 0.049], dtype=DTYPE), half, 0.012,
+    )  # fmt: skip
+    torch.testing.assert_close(edge, torch.tensor([-0.05, 0.049], dtype=DTYPE))
 
 
 def test_no_motion_without_contact() -> None:

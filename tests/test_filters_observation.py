@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 
 import numpy as np
 import pytest
@@ -429,27 +428,25 @@ def test_model_rejects_mismatched_parts() -> None:
         model.expected(torch.zeros(5, 7, dtype=DTYPE), torch.zeros(5, 2, dtype=DTYPE))
 
 
-def test_render_time_of_100_sigma_points_and_2000_points() -> None:
-    """Logs the time of one render (best of several). Timed on one thread: on a CPU shared
-    with other processes, torch's intra-op threads wait for each other and the time of a
-    two-thread render varies by orders of magnitude."""
+def test_render_of_100_sigma_points_and_2000_points() -> None:
+    """100 sigma points of a 2000-point cloud render to 64x64 with the object in view (the
+    speed is measured in benchmarks/bench_filter.py, not here)."""
     args = random_two_link_cloud(2000, seed=11)
     pose = look_at(Viewpoint.on_hemisphere(np.zeros(3), 0.5, -math.pi / 2, math.radians(60.0)))
     intrinsics = CameraIntrinsics.from_fov(320, 240, math.radians(58.0))
     proj = DepthProjector(args["points"], args["links"], args["initial"], intrinsics, pose)
     poses = random_poses(args["initial"], (100,), seed=12)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        proj.render(poses)  # warm-up
-        times_s = []
-        for _ in range(5):
-            start = time.perf_counter()
-            render = proj.render(poses)
-            times_s.append(time.perf_counter() - start)
-    finally:
-        torch.set_num_threads(threads)
-    logger.info("render of 100 x 2000 points to 64x64: %.2f ms", 1e3 * min(times_s))
+    render = proj.render(poses)
     assert render.shape == (100, 64, 64)
     assert bool((render < proj.background_m).any(dim=(1, 2)).all())  # the object is seen
-    assert min(times_s) < 0.1
+
+
+def test_unexplained_entries_are_pixels_nearer_than_every_rendering() -> None:
+    from vistac.plugins.filters.observation import unexplained_entries
+
+    expected = torch.full((3, 6), 0.5, dtype=DTYPE)
+    expected[1, 0] = 0.3
+    observation = torch.tensor([0.25, 0.45, 0.49, 0.8, 0.1, 0.1], dtype=DTYPE)
+    mask = unexplained_entries(observation, expected, 4, 0.01)
+    assert mask.tolist() == [True, True, False, False, False, False]
+    assert not bool(unexplained_entries(observation, expected, 4, None).any())

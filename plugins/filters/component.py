@@ -41,9 +41,9 @@ class Prior(BaseModel):
     friction: tuple[float, float] = (0.3, 0.12)
     com_m: tuple[float, float] = (0.0, 0.01)
     joint_friction_nm: tuple[float, float] = (0.25, 0.15)
-    position_m: float = Field(0.005, gt=0, description="std of the initial link positions")
-    angle_rad: float = Field(0.05, gt=0, description="std of the initial link angles")
-    velocity_mps: float = Field(0.002, gt=0, description="std of the initial twist (m/s, rad/s)")
+    position_m: float = Field(default=0.005, gt=0, description="std of the initial link positions")
+    angle_rad: float = Field(default=0.05, gt=0, description="std of the initial link angles")
+    velocity_mps: float = Field(default=0.002, gt=0, description="std of the initial twist (m/s, rad/s)")
 
 
 def link_boxes(shape: ShapeEstimate) -> tuple[FloatArray, FloatArray]:
@@ -82,9 +82,20 @@ class DualFilterComponent(Component):
         noise_checkpoint: SkillPath | None = Field(
             None, description="ObsNoiseNet state dict from `vistac train`; None: defaults"
         )
-        prior: Prior = Field(default_factory=Prior)
+        prior: Prior = Prior()
         depth_size_px: int = Field(64, gt=0, description="side of the observed depth image")
-        splat_px: int = Field(2, ge=1, description="pixels each projected point covers")
+        splat_px: int = Field(1, ge=1, description="pixels each projected point covers")
+        min_ess_fraction: float = Field(
+            0.8, gt=0, le=1, description="temper the parameter weights to keep this ESS share"
+        )
+        pose_std_floor: tuple[float, float, float, float, float, float] = Field(
+            (0.006, 0.006, 0.06, 0.0, 0.0, 0.0),
+            description="least predicted pose std (m, rad) before the visual update: about "
+            "one pixel, so the unscented points render differently",
+        )
+        occlusion_margin_m: float | None = Field(
+            0.01, gt=0, description="ignore pixels this much nearer than any projection (gripper)"
+        )
         between_episodes_std_m: float = Field(
             0.002, ge=0, description="pose std added between interactions (m, and rad / 10)"
         )
@@ -189,10 +200,13 @@ class DualFilterComponent(Component):
             width_px=size, height_px=size, splat_px=self.config.splat_px,
         )  # fmt: skip
         self.background_m = projector.background_m
-        observation = ProjectionObservationModel(self.layout, projector, self.noise_net)
+        config = self.config
+        observation = ProjectionObservationModel(
+            self.layout, projector, self.noise_net, occlusion_margin_m=config.occlusion_margin_m
+        )
         return DualFilter(
-            self.layout, self.model, observation, self.config.sigma_points,
-            self.config.liu_west_delta,
+            self.layout, self.model, observation, config.sigma_points, config.liu_west_delta,
+            min_ess_fraction=config.min_ess_fraction, pose_std_floor=config.pose_std_floor,
         )  # fmt: skip
 
     def _inputs(self, episode: Episode) -> Any:

@@ -412,9 +412,9 @@ class DualFilter:
         liu_west_delta: float = 0.97,
         ukf_kappa: float = 1.0,
         parameter_var_floor: float = 1e-12,
-        min_ess_fraction: float = 0.5,
+        min_ess_fraction: float = 0.8,
         marginal_parameter_likelihood: bool = True,
-        pose_std_floor: Sequence[float] | None = (0.004, 0.004, 0.04, 0.0, 0.0, 0.0),
+        pose_std_floor: Sequence[float] | None = (0.006, 0.006, 0.06, 0.0, 0.0, 0.0),
     ) -> None:
         if sigma_points < 2:
             raise ValueError(f"sigma_points must be >= 2, got {sigma_points}")

@@ -211,6 +211,8 @@ class AnalyticalProcessModel(Component):
         pusher_offset_m: float = Field(default=0.01, ge=0.0)
         """TCP to the leading pad face (the executor's ``pusher_offset_m``)."""
         contact_margin_m: float = Field(default=0.005, ge=0.0)
+        pad_half_width_m: float = Field(default=0.012, ge=0.0)
+        """Half width of the flat finger pad (line contact; 0: point contact)."""
         position_std_m: float = Field(default=0.002, gt=0.0)
         theta_std_rad: float = Field(default=0.02, gt=0.0)
         speed_std_mps: float = Field(default=0.005, gt=0.0)
@@ -224,6 +226,7 @@ class AnalyticalProcessModel(Component):
             pusher_friction=config.pusher_friction,
             pusher_offset_m=config.pusher_offset_m,
             contact_margin_m=config.contact_margin_m,
+            pad_half_width_m=config.pad_half_width_m,
         )
         std = [config.position_std_m] * 2 + [config.theta_std_rad]
         std += [config.speed_std_mps] * 2 + [config.rate_std_radps]

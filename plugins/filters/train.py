@@ -68,31 +68,33 @@ class TrainConfig(BaseModel):
     """shipped: skills/objects/*.yaml; generated: `vistac objects generate` train/val split."""
     shipped_train: tuple[str, ...] = ("rect1", "tri2", "ellip2", "hexagon", "artic_rect_rect")
     shipped_val: tuple[str, ...] = ("rect3", "hetero_rect_tri")
-    max_objects: int | None = Field(None, gt=0, description="cap on objects per split")
-    runs_per_object: int = Field(1, gt=0, description="collection-skill runs per object")
+    max_objects: int | None = Field(default=None, gt=0, description="cap on objects per split")
+    runs_per_object: int = Field(default=1, gt=0, description="collection-skill runs per object")
     collect_overrides: tuple[str, ...] = ()
     """``--set`` overrides of the collection skill, e.g. "tree.sequence.0.repeat.max=3"."""
     models: tuple[ModelName, ...] = ("gnn", "ff")
     interactions: tuple[Interaction, ...] = ("push", "pull")
-    hidden: int = Field(64, ge=4)
-    rollout_steps: int = Field(5, gt=0)
-    epochs: int = Field(30, gt=0)
-    noise_epochs: int = Field(5, ge=0)
-    filter_epochs: int = Field(1, ge=0)
-    filter_sigma_points: int = Field(24, ge=2)
-    filter_windows: int | None = Field(None, gt=0, description="cap on end-to-end windows/epoch")
-    batch_size: int = Field(16, gt=0)
-    learning_rate: float = Field(2e-3, gt=0)
-    patience: int = Field(5, gt=0, description="epochs without validation gain before stopping")
+    hidden: int = Field(default=64, ge=4)
+    rollout_steps: int = Field(default=5, gt=0)
+    epochs: int = Field(default=30, gt=0)
+    noise_epochs: int = Field(default=5, ge=0)
+    filter_epochs: int = Field(default=1, ge=0)
+    filter_sigma_points: int = Field(default=24, ge=2)
+    filter_windows: int | None = Field(
+        default=None, gt=0, description="cap on end-to-end windows/epoch"
+    )
+    batch_size: int = Field(default=16, gt=0)
+    learning_rate: float = Field(default=2e-3, gt=0)
+    patience: int = Field(
+        default=5, gt=0, description="epochs without validation gain before stopping"
+    )
     seed: int = 0
 
 
 PRESETS: dict[str, TrainConfig] = {
     "tiny": TrainConfig(
-        shipped_train=("rect2",), shipped_val=("rect1",), models=("gnn", "ff"),
-        collect_overrides=("tree.sequence.0.repeat.max=4",
-                           "components.affordances.with.interactions=[push]"),
-        interactions=("push",), hidden=32, epochs=8, noise_epochs=2, filter_epochs=1,
+        shipped_train=("rect1",), shipped_val=("rect3",), models=("gnn", "ff"),
+        collect_overrides=("tree.sequence.0.repeat.max=6",), hidden=32, epochs=8, noise_epochs=2, filter_epochs=1,
         filter_sigma_points=16, filter_windows=4, batch_size=8,
     ),
     "paper": TrainConfig(objects="generated", runs_per_object=1, epochs=60, patience=8),
@@ -188,7 +190,7 @@ def rollout_loss(model: Any, windows: list[Trajectory], rollout_steps: int) -> T
     return torch.stack(losses).mean()
 
 
-def _projector(window: Trajectory, rng: np.random.Generator, splat_px: int = 2) -> DepthProjector:
+def _projector(window: Trajectory, rng: np.random.Generator, splat_px: int = 1) -> DepthProjector:
     if window.depth_m is None or window.camera_pose is None or window.intrinsics is None:
         raise DataError(f"{window.source}: no depth frames; collect with record_depth: true")
     points, owners = object_cloud(window.spec, rng)
@@ -315,7 +317,7 @@ def fit(
         losses = []
         for loss in train_loss():
             optimiser.zero_grad()
-            loss.backward()  # type: ignore[no-untyped-call]
+            loss.backward()
             nn.utils.clip_grad_norm_(parameters, 10.0)
             optimiser.step()
             losses.append(float(loss.detach()))

@@ -96,20 +96,20 @@ def object_cluster(
 
 def icp_align(
     source_m: FloatArray, target_m: FloatArray, max_distance_m: float, normal_radius_m: float
-) -> tuple[FloatArray, float]:
-    """Rigid transform [4, 4] that moves ``source_m`` [N, 3] onto ``target_m`` [M, 3]
-    (point-to-plane ICP from the identity) and its fitness (share of source points matched)."""
+) -> tuple[FloatArray, float, float]:
+    """Point-to-plane ICP of ``source_m`` [N, 3] onto ``target_m`` [M, 3] from the identity.
+
+    Returns (transform [4, 4], inlier RMSE before (m), inlier RMSE after (m))."""
     source, target = _o3d_cloud(source_m), _o3d_cloud(target_m)
     search = o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m, max_nn=30)
     target.estimate_normals(search)
-    result = o3d.pipelines.registration.registration_icp(
-        source,
-        target,
-        max_distance_m,
-        np.eye(4),
-        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-    )
-    return np.asarray(result.transformation), float(result.fitness)
+    registration = o3d.pipelines.registration
+    before = registration.evaluate_registration(source, target, max_distance_m, np.eye(4))
+    result = registration.registration_icp(
+        source, target, max_distance_m, np.eye(4),
+        registration.TransformationEstimationPointToPlane(),
+    )  # fmt: skip
+    return np.asarray(result.transformation), before.inlier_rmse, result.inlier_rmse
 
 
 def transform_points(transform: FloatArray, points_m: FloatArray) -> FloatArray:
@@ -145,8 +145,8 @@ class Open3dCloudProcessor(Component):
         )
         icp: bool = Field(True, description="register each new view onto the previous ones")
         icp_max_distance_m: float = Field(0.01, gt=0, description="ICP correspondence radius")
-        icp_min_fitness: float = Field(
-            0.3, ge=0, le=1, description="below this share of matched points keep the view as is"
+        icp_min_rmse_gain: float = Field(
+            0.3, ge=0, le=1, description="apply ICP only if it cuts the RMSE by this share"
         )
         icp_max_correction_m: float = Field(
             0.02, gt=0, description="larger ICP corrections are rejected as wrong"
@@ -205,14 +205,19 @@ class Open3dCloudProcessor(Component):
         config = self.config
         if not config.icp or len(source) < config.min_object_points or len(target) < 3:
             return None
-        transform, fitness = icp_align(
+        transform, rmse_before_m, rmse_after_m = icp_align(
             source, target, config.icp_max_distance_m, max(3 * config.voxel_m, 0.005)
         )
         correction_m = float(np.linalg.norm(transform[:3, 3]))
-        if fitness < config.icp_min_fitness or correction_m > config.icp_max_correction_m:
-            log.info("ICP rejected (fitness %.2f, shift %.1f mm)", fitness, 1e3 * correction_m)
+        gain = 1.0 - rmse_after_m / rmse_before_m if rmse_before_m > 0 else 0.0
+        if gain < config.icp_min_rmse_gain or correction_m > config.icp_max_correction_m:
+            # Already aligned (ICP would only fit the noise, sliding along flat faces) or
+            # an implausibly large jump.
+            log.info("ICP not applied (RMSE gain %.0f%%, shift %.1f mm)", 100 * gain,
+                     1e3 * correction_m)  # fmt: skip
             return None
-        log.info("ICP: fitness %.2f, shift %.2f mm", fitness, 1e3 * correction_m)
+        log.info("ICP: RMSE %.2f -> %.2f mm, shift %.2f mm", 1e3 * rmse_before_m,
+                 1e3 * rmse_after_m, 1e3 * correction_m)  # fmt: skip
         return transform
 
     def _above_table(self, points_m: FloatArray) -> FloatArray:

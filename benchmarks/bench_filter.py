@@ -1,0 +1,157 @@
+"""Dual filter speed: one step (predict + update) with C = 100 sigma points.
+
+Target: >= 100 Hz for a two-link object (L = 2) with the GNN process model (hidden 64,
+fresh weights) and the 4098-dim observation (a 64x64 render of a 2000-point cloud + force),
+torch on one thread. Peer in the same run: filterpy's UnscentedKalmanFilter on the pose-only
+part of the same problem (6 L = 12-dim state, the same render as its observation function).
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import Row, median_time_s
+from vistac.plugins.filters.dual import Belief, DualFilter
+from vistac.plugins.filters.observation import (
+    DepthProjector,
+    ObsNoiseNet,
+    ProjectionObservationModel,
+    observation_vector,
+)
+from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
+from vistac.testing import build_components
+from vistac.types import CameraIntrinsics
+
+TARGET_HZ = 100.0
+DT_S = 1.0 / 15.0
+LINKS = 2
+
+
+def _camera() -> np.ndarray:
+    """Optical frame 0.5 m from the object, looking down at 60 degrees."""
+    tilt = math.radians(60.0)
+    forward = np.array([0.0, math.cos(tilt), -math.sin(tilt)])
+    right = np.array([1.0, 0.0, 0.0])
+    down = np.cross(forward, right)
+    pose = np.eye(4)
+    pose[:3, :3] = np.column_stack([right, down, forward])
+    pose[:3, 3] = np.array([0.0, 0.45, 0.0]) - 0.5 * forward
+    return pose
+
+
+def _problem() -> tuple[StateLayout, DepthProjector, Belief, ProcessInput, torch.Tensor]:
+    rng = np.random.default_rng(0)
+    layout = StateLayout(LINKS)
+    initial = np.array([[-0.05, 0.45, 0.0], [0.05, 0.45, 0.0]])
+    points = np.column_stack([
+        rng.uniform(-0.1, 0.1, 2000), 0.45 + rng.uniform(-0.04, 0.04, 2000),
+        rng.uniform(0.0, 0.05, 2000),
+    ])  # fmt: skip
+    links = (points[:, 0] > 0).astype(np.int64)
+    intrinsics = CameraIntrinsics.from_fov(320, 240, math.radians(58.0))
+    projector = DepthProjector(points, links, initial, intrinsics, _camera(), splat_px=1)
+    mean = torch.zeros(layout.size, dtype=DTYPE)
+    mean[0:3] = torch.as_tensor(initial[0])
+    mean[6:9] = torch.as_tensor(initial[1])
+    mean[12:20] = torch.tensor([0.5, 0.3, 0.0, 0.0] * 2, dtype=DTYPE)
+    mean[20] = 0.2
+    std = torch.full((layout.size,), 0.005, dtype=DTYPE)
+    std[12:] = 0.05
+    belief = Belief(mean, torch.diag(std**2))
+    inputs = ProcessInput(
+        tcp=torch.tensor([-0.17, 0.45, 0.0, 0.02, 0.0, 0.0], dtype=DTYPE),
+        pd_rad=torch.tensor(0.0, dtype=DTYPE),
+        is_pull=torch.tensor(0.0, dtype=DTYPE),
+        link=torch.tensor(0),
+        link_size_m=torch.tensor([[0.05, 0.04]] * 2, dtype=DTYPE),
+        link_offset=torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]], dtype=DTYPE),
+    )
+    shifted = torch.as_tensor(initial, dtype=DTYPE) + torch.tensor([0.003, 0.0, 0.0])
+    observation = observation_vector(
+        projector.render(shifted), torch.tensor([0.5, 0.0], dtype=DTYPE), projector.background_m
+    )
+    return layout, projector, belief, inputs, observation
+
+
+def time_dual_step_s(repeats: int) -> float:
+    layout, projector, belief, inputs, observation = _problem()
+    with tempfile.TemporaryDirectory() as tmp:
+        model = build_components(
+            {"m": {"plugin": "filters.gnn", "with": {"hidden": 64}}}, Path(tmp)
+        ).component("m")
+    observation_model = ProjectionObservationModel(layout, projector, ObsNoiseNet())
+    dual = DualFilter(layout, model, observation_model, 100)
+    generator = torch.Generator().manual_seed(0)
+
+    def step() -> None:
+        with torch.no_grad():
+            dual.step(belief, inputs, DT_S, observation, generator)
+
+    return median_time_s(step, repeats, warmup=2)
+
+
+def time_filterpy_step_s(repeats: int) -> float:
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+    layout, projector, belief, _, observation = _problem()
+    n = layout.n_pose
+
+    def fx(x: np.ndarray, dt: float) -> np.ndarray:
+        poses = x.reshape(LINKS, 6).copy()
+        poses[:, :3] += dt * poses[:, 3:]
+        return poses.reshape(-1)
+
+    def hx(x: np.ndarray) -> np.ndarray:
+        poses = torch.as_tensor(x.reshape(LINKS, 6)[:, :3], dtype=DTYPE)
+        depth = projector.render(poses).reshape(-1).numpy()
+        return np.concatenate([depth, np.zeros(2)])
+
+    ukf = UnscentedKalmanFilter(
+        n, observation.numel(), DT_S, hx, fx, MerweScaledSigmaPoints(n, 0.5, 2.0, 0.0)
+    )
+    start_x = belief.mean[:n].numpy().copy()
+    start_p = belief.cov[:n, :n].numpy().copy()
+    ukf.R = np.eye(observation.numel()) * 0.005**2
+    ukf.Q = np.eye(n) * 1e-6
+    z = observation.numpy()
+
+    def step() -> None:
+        ukf.x, ukf.P = start_x.copy(), start_p.copy()
+        ukf.predict()
+        ukf.update(z)
+
+    return median_time_s(step, max(1, repeats // 5), warmup=1)
+
+
+def run(repeats: int) -> list[Row]:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        dual_s = time_dual_step_s(repeats)
+        try:
+            peer_s: float | None = time_filterpy_step_s(repeats)
+        except ImportError:
+            peer_s = None
+    finally:
+        torch.set_num_threads(threads)
+    return [
+        Row(
+            name="dual filter step (C=100, L=2, GNN 64, 4098 obs)",
+            value=1.0 / dual_s,
+            unit="Hz",
+            target=f">= {TARGET_HZ:g} Hz",
+            passed=1.0 / dual_s >= TARGET_HZ,
+            peer="filterpy UKF, pose only (12 dims)",
+            peer_value=None if peer_s is None else 1.0 / peer_s,
+            note="torch threads = 1" + ("" if peer_s is not None else "; filterpy missing"),
+        )
+    ]
+
+
+if __name__ == "__main__":
+    for row in run(20):
+        print(row)

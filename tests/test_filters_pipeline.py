@@ -1,0 +1,160 @@
+"""Training data, the filters.dual component, `vistac train` and the explore skills."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import run_vistac
+from vistac.errors import ConfigError
+from vistac.objects import load_object
+from vistac.plugins.filters.component import DualFilterComponent, nearest_link, relative_poses
+from vistac.plugins.filters.data import link_geometry, unwrapped_twist
+from vistac.plugins.filters.state import StateLayout
+from vistac.protocols import Filter, Scene
+from vistac.testing import build_components, check_component_class
+from vistac.types import PointCloud, ShapeEstimate, Superquadric
+
+ROOT = Path(__file__).resolve().parents[1]
+SKILLS = ROOT / "skills"
+
+
+def test_twist_by_central_differences_unwraps_the_angle() -> None:
+    dt_s = 0.1
+    t = np.arange(6) * dt_s
+    theta = np.angle(np.exp(1j * (np.pi - 0.05 + 0.5 * t)))  # wraps from +pi to -pi
+    poses = np.stack([0.02 * t, -0.01 * t, theta], axis=1)[:, None, :]
+    twist = unwrapped_twist(poses, dt_s)
+    np.testing.assert_allclose(twist[:, 0], np.tile([0.02, -0.01, 0.5], (6, 1)), atol=1e-9)
+
+
+def test_link_geometry_of_a_two_link_object() -> None:
+    spec = load_object(SKILLS / "objects" / "artic_rect_rect.yaml")
+    size, offset = link_geometry(spec)
+    np.testing.assert_allclose(size, [[0.045, 0.045], [0.045, 0.045]], atol=1e-9)
+    # Link 1 sits one box width plus the 4 mm hinge gap along link 0's x axis.
+    np.testing.assert_allclose(offset, [[0, 0, 0], [0.094, 0, 0]], atol=1e-9)
+
+
+def test_nearest_link_and_relative_poses() -> None:
+    poses = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, np.pi / 2]])
+    sizes = np.array([[0.04, 0.02], [0.04, 0.02]])
+    points = np.array([[0.03, 0.0, 0.01], [0.1, 0.035, 0.01], [0.07, 0.0, 0.0]])
+    assert nearest_link(points, poses, sizes).tolist() == [0, 1, 1]
+    np.testing.assert_allclose(relative_poses(poses), [[0, 0, 0], [0.1, 0, np.pi / 2]])
+
+
+def _box_shape() -> ShapeEstimate:
+    pose = np.eye(4)
+    pose[:3, 3] = [0.0, 0.45, 0.025]
+    link = Superquadric(np.array([0.045, 0.056, 0.025]), np.array([0.1, 0.1]), pose)
+    cloud = PointCloud(np.random.default_rng(0).normal([0, 0.45, 0.03], 0.02, (300, 3)))
+    return ShapeEstimate((link,), np.array([[0.0, 0.45, 0.0]]), np.zeros((1, 14)), cloud)
+
+
+def _filter(tmp_path: Path, model: dict[str, object]) -> DualFilterComponent:
+    specs = {"model": model, "filter": {"plugin": "filters.dual"}}
+    component: DualFilterComponent = build_components(specs, tmp_path).component("filter")
+    return component
+
+
+def test_filters_dual_is_a_filter_component(tmp_path: Path) -> None:
+    check_component_class(DualFilterComponent)
+    assert isinstance(_filter(tmp_path, {"plugin": "filters.analytical"}), Filter)
+
+
+def test_initial_belief_comes_from_the_shape_and_the_prior(tmp_path: Path) -> None:
+    belief = _filter(tmp_path, {"plugin": "filters.gnn"}).initialise(
+        Scene(_box_shape().cloud, _box_shape())
+    )
+    assert belief.names == StateLayout(1).names
+    values = dict(zip(belief.names, belief.mean, strict=True))
+    stds = dict(zip(belief.names, belief.std, strict=True))
+    assert values["x_0"] == 0.0 and values["y_0"] == 0.45
+    assert values["m_0"] == pytest.approx(0.9) and stds["m_0"] == pytest.approx(0.4)
+    assert values["f_0"] == pytest.approx(0.3) and stds["com_x_0"] == pytest.approx(0.01)
+
+
+def test_filter_needs_a_process_model(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="needs a process_model"):
+        build_components({"filter": {"plugin": "filters.dual"}}, tmp_path).component("filter")
+
+
+def test_fixed_link_model_rejects_another_link_count(tmp_path: Path) -> None:
+    component = _filter(tmp_path, {"plugin": "filters.ff", "with": {"n_links": 2}})
+    with pytest.raises(ConfigError, match="handles 2 link"):
+        component.initialise(Scene(_box_shape().cloud, _box_shape()))
+
+
+def _summary(out: Path) -> dict[str, object]:
+    summary: dict[str, object] = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    return summary
+
+
+EXPLORE_SHORT = ("--set", "tree.sequence.1.repeat.max=1")
+
+
+@pytest.mark.parametrize(
+    "model",
+    [
+        "components.model.with.hidden=32",  # the shipped GNN checkpoint
+        "components.model={plugin: filters.ff, with: {n_links: 1}}",
+        "components.model={plugin: filters.analytical}",
+    ],
+    ids=["gnn", "ff", "analytical"],
+)
+def test_explore_push_runs_with_each_process_model(tmp_path: Path, model: str) -> None:
+    out = tmp_path / "run"
+    result = run_vistac(
+        "-q", "run", str(SKILLS / "explore_push.yaml"), "--out", str(out), *EXPLORE_SHORT,
+        "--set", model,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    summary = _summary(out)
+    belief = summary["belief"]
+    assert isinstance(belief, dict)
+    assert {"m_0", "f_0", "com_x_0", "com_y_0"} <= set(belief)
+    assert all(np.isfinite(entry["mean"]) for entry in belief.values())
+    assert "parameter" in result.stdout and "truth" in result.stdout
+
+
+def test_a_corrupt_checkpoint_is_a_clear_error(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    result = run_vistac(
+        "run", str(SKILLS / "explore_push.yaml"), "--out", str(tmp_path / "run"),
+        "--set", f"components.model.with.checkpoint={bad}",
+    )  # fmt: skip
+    assert result.returncode != 0
+    assert "bad.pt" in result.stderr and "vistac train" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_an_unknown_preset_is_a_clear_error(tmp_path: Path) -> None:
+    result = run_vistac(
+        "train", str(SKILLS / "collect_pushes.yaml"), "--out", str(tmp_path), "--preset", "huge"
+    )
+    assert result.returncode == 2
+    assert "unknown preset 'huge'" in result.stderr
+
+
+def test_tiny_training_gives_checkpoints_the_explore_skill_can_use(tmp_path: Path) -> None:
+    out = tmp_path / "train"
+    result = run_vistac("-q", "train", str(SKILLS / "collect_pushes.yaml"), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "train.json").read_text(encoding="utf-8"))
+    history = report["push"]["gnn"]["history"]
+    assert history[-1]["train"] < history[0]["train"], "training did not reduce the loss"
+    for name in ("gnn_push.pt", "ff_push.pt", "obs_noise_push.pt"):
+        assert (out / name).stat().st_size < 2_000_000
+        assert isinstance(torch.load(out / name, weights_only=True), dict)
+    run = run_vistac(
+        "-q", "run", str(SKILLS / "explore_push.yaml"), "--out", str(tmp_path / "run"),
+        *EXPLORE_SHORT,
+        "--set", f"components.model.with.checkpoint={out / 'gnn_push.pt'}",
+        "--set", f"components.filter.with.noise_checkpoint={out / 'obs_noise_push.pt'}",
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
