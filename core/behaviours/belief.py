@@ -17,8 +17,10 @@ DEFAULT_MAX_STD = {"m_*": 0.05, "f_j_*": 0.03, "f_*": 0.03, "com_*": 0.005}
 
 
 class UpdateBelief(SkillBehaviour):
-    """Feed the last episode to the filter. (A NaN belief cannot be built: GaussianBelief
-    rejects it, which stops the run with the arm stopped.)"""
+    """Feed the last episode to the filter. The summary gets ``belief`` (the latest),
+    ``belief_history`` (one per interaction) and, from filters that keep one
+    (``step_history()``), ``filter_steps``: the belief at every control step. (A NaN belief
+    cannot be built: GaussianBelief rejects it, which stops the run with the arm stopped.)"""
 
     reads = ("episode", "belief")
     writes = ("belief",)
@@ -28,9 +30,14 @@ class UpdateBelief(SkillBehaviour):
         filter: str = "filter"
 
     def update(self) -> Status:
-        belief = self.component("filter").update(self.read("episode"))
+        filter_ = self.component("filter")
+        belief = filter_.update(self.read("episode"))
         self.write("belief", belief)
         self.run.results["belief"] = belief.as_dict()
+        self.run.results.setdefault("belief_history", []).append(belief.as_dict())
+        steps = getattr(filter_, "step_history", None)
+        if callable(steps):  # filters that keep a per-step trace (plots of belief bands)
+            self.run.results["filter_steps"] = steps()
         self.run.hook.vistac_belief(run=self.run.info, belief=belief)
         return Status.SUCCESS
 

@@ -43,7 +43,9 @@ class Prior(BaseModel):
     joint_friction_nm: tuple[float, float] = (0.25, 0.15)
     position_m: float = Field(default=0.005, gt=0, description="std of the initial link positions")
     angle_rad: float = Field(default=0.05, gt=0, description="std of the initial link angles")
-    velocity_mps: float = Field(default=0.002, gt=0, description="std of the initial twist (m/s, rad/s)")
+    velocity_mps: float = Field(
+        default=0.002, gt=0, description="std of the initial twist (m/s, rad/s)"
+    )
 
 
 def link_boxes(shape: ShapeEstimate) -> tuple[FloatArray, FloatArray]:
@@ -93,6 +95,9 @@ class DualFilterComponent(Component):
             description="least predicted pose std (m, rad) before the visual update: about "
             "one pixel, so the unscented points render differently",
         )
+        estimate_parameters: bool = Field(
+            True, description="false: keep the prior parameters (pose tracking only)"
+        )
         occlusion_margin_m: float | None = Field(
             0.01, gt=0, description="ignore pixels this much nearer than any projection (gripper)"
         )
@@ -116,6 +121,7 @@ class DualFilterComponent(Component):
         self.generator = torch.Generator().manual_seed(int(ctx.rng("filter").integers(2**31)))
         self.layout: StateLayout | None = None
         self.belief: Belief | None = None
+        self.prior: Belief | None = None
         self.shape: ShapeEstimate | None = None
         self.history: list[dict[str, Any]] = []
 
@@ -136,6 +142,7 @@ class DualFilterComponent(Component):
         self.belief = Belief(
             torch.as_tensor(mean, dtype=DTYPE), torch.diag(torch.as_tensor(std, dtype=DTYPE) ** 2)
         )
+        self.prior = self.belief
         return self._public()
 
     def update(self, episode: Episode) -> GaussianBelief:
@@ -154,10 +161,30 @@ class DualFilterComponent(Component):
                 self.belief = filter_.step(
                     self.belief, inputs(step), dt_s, observation, self.generator
                 )
-                self.history.append({"time_s": step.time_s, **self._public().as_dict()})
+                if not self.config.estimate_parameters:
+                    self._restore_prior_parameters()
+                self.history.append(
+                    {"episode": episode.index, "time_s": step.time_s, **self._public().as_dict()}
+                )
         return self._public()
 
+    def step_history(self) -> list[dict[str, Any]]:
+        """The belief after every filter step so far: episode, time_s and per entry
+        ``{"mean", "std"}``."""
+        return list(self.history)
+
     # -- helpers --------------------------------------------------------------------------
+
+    def _restore_prior_parameters(self) -> None:
+        """Parameters back to the prior (and uncorrelated with the pose)."""
+        assert self.belief is not None and self.layout is not None and self.prior is not None
+        params = self.layout.parameter_slice
+        mean, cov = self.belief.mean.clone(), self.belief.cov.clone()
+        mean[params] = self.prior.mean[params]
+        cov[params, :] = 0.0
+        cov[:, params] = 0.0
+        cov[params, params] = self.prior.cov[params, params]
+        self.belief = Belief(mean, cov)
 
     def _prior_mean_std(self, poses: FloatArray) -> tuple[FloatArray, FloatArray]:
         assert self.layout is not None
