@@ -188,6 +188,29 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval(args: argparse.Namespace) -> int:
+    from vistac.plugins.filters.evaluate import EvalOptions, evaluate, parse_models
+
+    if not args.skill.is_file():
+        raise ConfigError(f"{args.skill}: no such skill file")
+    options = EvalOptions(
+        skill=args.skill, out=args.out, objects=tuple(args.objects),
+        checkpoints=args.checkpoints, models=parse_models(args.models),
+        max_objects=args.max_objects, max_interactions=args.max_interactions, seed=args.seed,
+        overrides=tuple(args.set),
+    )  # fmt: skip
+    if args.checkpoints is not None and not args.checkpoints.is_dir():
+        raise ConfigError(f"--checkpoints: {args.checkpoints} is not a folder")
+    report = evaluate(options)
+    print((args.out / "tables.md").read_text(encoding="utf-8"))
+    skipped = [r for r in report["runs"] if r["status"] != "ok"]
+    for run in skipped:
+        print(f"{run['status']}: {run['variant']} on {run['object']}: {run['reason']}")
+    print(f"evaluated {len(report['runs']) - len(skipped)} runs; eval.json, tables and plots "
+          f"in {args.out}")  # fmt: skip
+    return 0
+
+
 def _add_skill_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--set",
@@ -249,6 +272,29 @@ def build_parser() -> argparse.ArgumentParser:
         "--data", type=Path, action="append", help="train on these recorded run folders instead"
     )
     train.set_defaults(func=cmd_train)
+
+    evaluate = sub.add_parser("eval", help="compare the process models on a set of objects")
+    evaluate.add_argument("skill", type=Path, help="the exploration skill, e.g. explore_push.yaml")
+    evaluate.add_argument("--out", type=Path, required=True, help="evaluation folder")
+    evaluate.add_argument(
+        "--objects", nargs="+", default=["test"], metavar="SPLIT|YAML",
+        help="test, val, train (the generated set) or object YAML files",
+    )  # fmt: skip
+    evaluate.add_argument(
+        "--checkpoints",
+        type=Path,
+        help="a `vistac train` folder (default: the skill's checkpoints/)",
+    )
+    evaluate.add_argument("--models", default="gnn,ff,analytical", help="comma-separated")
+    evaluate.add_argument(
+        "--max-objects", type=int, default=None, help="evaluate at most N objects"
+    )
+    evaluate.add_argument(
+        "--max-interactions", type=int, default=None, help="cap on interactions per run"
+    )
+    evaluate.add_argument("--seed", type=int, default=None, help="override the skill's seed")
+    _add_skill_options(evaluate)
+    evaluate.set_defaults(func=cmd_eval)
 
     objects = sub.add_parser("objects", help="object configurations")
     objects_sub = objects.add_subparsers(dest="objects_command", required=True)

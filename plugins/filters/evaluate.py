@@ -1,0 +1,713 @@
+"""``vistac eval``: compare the process models on a set of objects (paper 1, IV-B3 and IV-D).
+
+For every object and process model the exploration skill runs once with the same seed, so the
+look and the first actions agree (the planner is ``actions.random``: the actions are random,
+not actively selected). The GNN also runs once per object with ``estimate_parameters: false``
+for the pose-tracking comparison (Fig. 15).
+
+Parameter error. NRMSE per parameter = RMSE over the runs of (estimate - truth) divided by the
+parameter's range over the object set. Mass, table friction and joint friction use the ranges
+the 120 configurations are drawn from (:data:`vistac.objects.MASS_RANGE_KG`, ...); the CoM is
+compared as its radial distance ``sqrt(com_x^2 + com_y^2)`` from the link frame's origin,
+because the estimate lives in the fitted superquadric's frame, which may be rotated against
+the true link frame, and is normalised by the range of the radial CoM over the 120 generated
+configurations. Belief links are matched to true links by their positions at the first
+filter step (nearest, over all assignments).
+
+Pose tracking. The belief's poses are those of the fitted superquadric frames, the truth the
+link frames, so each step is compared as a change from the episode's first step: the error is
+the distance between the belief's position and the true position of the body point that sat
+at the belief's position at the first step (the link's displacement plus the rotation of that
+offset), and the difference of the two rotations since the first step.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import itertools
+import json
+import logging
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from vistac.errors import ConfigError, DataError
+from vistac.objects import (
+    FRICTION_RANGE,
+    JOINT_FRICTION_RANGE_NM,
+    MASS_RANGE_KG,
+    OBJECT_TYPES,
+    ObjectSpec,
+    generate_configurations,
+    load_object,
+    write_configurations,
+)
+
+log = logging.getLogger(__name__)
+
+MODELS: tuple[str, ...] = ("gnn", "ff", "analytical")
+FIXED = "gnn_fixed"
+"""The GNN run with ``estimate_parameters: false`` (pose tracking only)."""
+FAMILIES: tuple[str, ...] = ("m", "f", "CoM", "f_j")
+"""Parameter families of the tables: mass, table friction, radial CoM, joint friction."""
+SPLITS: tuple[str, ...] = ("train", "val", "test")
+OBJECT_SET_SEED = 0
+"""Seed of the generated object set (``vistac objects generate`` default)."""
+
+Pairs = dict[str, tuple[float, float]]
+"""Row name (``m_0``, ``CoM_1``, ``f_j_0``) -> (estimate, truth)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Normalisation ranges
+
+
+def radial_com(com_x: float, com_y: float) -> float:
+    """Distance (m) of the CoM from the link frame's origin; invariant to the frame's yaw."""
+    return math.hypot(com_x, com_y)
+
+
+def _span(values: Iterable[float]) -> float:
+    array = np.fromiter(values, dtype=np.float64)
+    return float(array.max() - array.min())
+
+
+def parameter_ranges(
+    specs: Sequence[ObjectSpec] | None = None, empirical: bool = False
+) -> dict[str, float]:
+    """The normalisation range of each family: {"m": kg, "f": -, "CoM": m, "f_j": N m}.
+
+    ``specs``: the object set (default: the 120 generated configurations). ``empirical``:
+    False takes m, f and f_j from the ranges the set is drawn from and only the radial CoM
+    from the set; True takes all four from the set's values.
+    """
+    specs = list(specs) if specs is not None else generate_configurations(OBJECT_SET_SEED)
+    links = [link for spec in specs for link in spec.links]
+    ranges = {"CoM": _span(radial_com(*link.com_m) for link in links)}
+    if empirical:
+        joints = [spec.joint.friction_nm for spec in specs if spec.joint is not None]
+        ranges |= {
+            "m": _span(link.mass_kg for link in links),
+            "f": _span(link.friction for link in links),
+            "f_j": _span(joints) if joints else float("nan"),
+        }
+    else:
+        ranges |= {
+            "m": MASS_RANGE_KG[1] - MASS_RANGE_KG[0],
+            "f": FRICTION_RANGE[1] - FRICTION_RANGE[0],
+            "f_j": JOINT_FRICTION_RANGE_NM[1] - JOINT_FRICTION_RANGE_NM[0],
+        }
+    return {family: ranges[family] for family in FAMILIES}
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameter errors
+
+
+def family_of(row: str) -> str:
+    """``m_0`` -> ``m``, ``CoM_1`` -> ``CoM``, ``f_j_0`` -> ``f_j``."""
+    return row.rsplit("_", 1)[0]
+
+
+def match_links(belief_xy: np.ndarray, true_xy: np.ndarray) -> dict[int, int]:
+    """Belief link -> true link, minimising the summed distance of positions [Lb, 2], [Lt, 2].
+
+    With fewer true than belief links, the surplus belief links stay unmatched.
+    """
+    n_belief, n_true = len(belief_xy), len(true_xy)
+    best: tuple[float, dict[int, int]] = (math.inf, {})
+    for targets in itertools.permutations(range(n_true), min(n_belief, n_true)):
+        pairs = dict(zip(range(n_belief), targets, strict=False))
+        cost = sum(float(np.linalg.norm(belief_xy[b] - true_xy[t])) for b, t in pairs.items())
+        if cost < best[0]:
+            best = (cost, pairs)
+    return best[1]
+
+
+def parameter_pairs(
+    belief: dict[str, dict[str, float]], truth: dict[str, float], links: dict[int, int]
+) -> Pairs:
+    """(estimate, truth) per table row of one belief; ``links`` maps belief to true links.
+
+    Rows are named by the true link: ``m_l``, ``f_l``, ``CoM_l`` (radial, m), ``f_j_k``.
+    """
+    pairs: Pairs = {}
+    for b, t in links.items():
+        if f"m_{b}" not in belief or f"m_{t}" not in truth:
+            continue
+        mean = {key: belief[f"{key}_{b}"]["mean"] for key in ("m", "f", "com_x", "com_y")}
+        pairs[f"m_{t}"] = (mean["m"], truth[f"m_{t}"])
+        pairs[f"f_{t}"] = (mean["f"], truth[f"f_{t}"])
+        pairs[f"CoM_{t}"] = (
+            radial_com(mean["com_x"], mean["com_y"]),
+            radial_com(truth[f"com_x_{t}"], truth[f"com_y_{t}"]),
+        )
+    for name, value in truth.items():
+        if name.startswith("f_j_") and name in belief:
+            pairs[name] = (belief[name]["mean"], value)
+    return pairs
+
+
+def nrmse(pairs: Sequence[tuple[float, float]], value_range: float) -> float:
+    """RMSE of (estimate - truth) over ``pairs`` divided by ``value_range``; NaN if empty."""
+    if not pairs or not value_range > 0:
+        return float("nan")
+    errors = np.array([estimate - truth for estimate, truth in pairs], dtype=np.float64)
+    return float(np.sqrt(np.mean(errors**2)) / value_range)
+
+
+def nrmse_rows(runs: Sequence[Pairs], ranges: dict[str, float]) -> dict[str, float]:
+    """NRMSE of every row over the runs, plus ``overall`` = mean of the finite rows."""
+    names = sorted({name for pairs in runs for name in pairs}, key=_row_order)
+    rows = {
+        name: nrmse([pairs[name] for pairs in runs if name in pairs], ranges[family_of(name)])
+        for name in names
+    }
+    finite = [value for value in rows.values() if math.isfinite(value)]
+    rows["overall"] = float(np.mean(finite)) if finite else float("nan")
+    return rows
+
+
+def _row_order(name: str) -> tuple[int, int]:
+    family, link = name.rsplit("_", 1)
+    return (FAMILIES.index(family), int(link))
+
+
+# ---------------------------------------------------------------------------------------------
+# Pose tracking
+
+
+def wrap_angle(angle: np.ndarray) -> np.ndarray:
+    """Angles (rad) wrapped to [-pi, pi)."""
+    return np.asarray((angle + np.pi) % (2 * np.pi) - np.pi)
+
+
+def pose_change_errors(belief: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Errors of the pose changes since the first step, for frames fixed to the same bodies.
+
+    belief, truth: [T, L, 3] = (x_m, y_m, theta_rad) per step and (matched) link, the belief in
+    the fitted frames, the truth in the link frames. Returns (position error [T, L] in m, the
+    distance from the belief's position to the true track of the body point at the belief's
+    first position; angle error [T, L] in rad, |change of belief theta - change of true theta|).
+    """
+    turn = wrap_angle(truth[..., 2] - truth[:1, :, 2])  # [T, L]
+    offset = belief[:1, :, :2] - truth[:1, :, :2]  # [1, L, 2] world, at the first step
+    c, s = np.cos(turn), np.sin(turn)
+    rotated = np.stack(
+        [c * offset[..., 0] - s * offset[..., 1], s * offset[..., 0] + c * offset[..., 1]], -1
+    )
+    point = truth[..., :2] + rotated  # [T, L, 2] true track of that body point
+    position = np.linalg.norm(belief[..., :2] - point, axis=-1)
+    belief_turn = wrap_angle(belief[..., 2] - belief[:1, :, 2])
+    return position, np.abs(wrap_angle(belief_turn - turn))
+
+
+def belief_poses(steps: Sequence[dict[str, Any]], links: Sequence[int]) -> np.ndarray:
+    """The filter's link poses [T, len(links), 3] from ``filter_steps`` entries."""
+    return np.array(
+        [
+            [[step[f"{k}_{b}"]["mean"] for k in ("x", "y", "theta")] for b in links]
+            for step in steps
+        ],
+        dtype=np.float64,
+    ).reshape(len(steps), len(links), 3)
+
+
+def tracking_errors(
+    run_dir: Path, summary: dict[str, Any], links: dict[int, int]
+) -> dict[str, float]:
+    """Mean position (m) and angle (rad) error of a run's per-step link poses, all episodes.
+
+    Steps are matched in order within each episode (``filter_steps`` against the episode's
+    ``data.npz`` ``object_pose``).
+    """
+    positions: list[np.ndarray] = []
+    angles: list[np.ndarray] = []
+    for index, steps in _steps_by_episode(summary.get("filter_steps", [])).items():
+        path = run_dir / "episodes" / f"{index:04d}" / "data.npz"
+        try:
+            with np.load(path) as data:
+                truth = np.asarray(data["object_pose"], dtype=np.float64)
+        except (OSError, KeyError) as error:
+            raise DataError(f"{path}: no object_pose ({error})") from None
+        count = min(len(steps), len(truth))
+        if count < 1 or not links:
+            continue
+        belief = belief_poses(steps[:count], list(links))
+        position, angle = pose_change_errors(belief, truth[:count, list(links.values())])
+        positions.append(position.ravel())
+        angles.append(angle.ravel())
+    if not positions:
+        return {"position_m": float("nan"), "angle_rad": float("nan"), "steps": 0}
+    return {
+        "position_m": float(np.concatenate(positions).mean()),
+        "angle_rad": float(np.concatenate(angles).mean()),
+        "steps": int(sum(len(p) for p in positions) // max(len(links), 1)),
+    }
+
+
+def _steps_by_episode(steps: Sequence[dict[str, Any]]) -> dict[int, list[dict[str, Any]]]:
+    grouped: dict[int, list[dict[str, Any]]] = {}
+    for step in steps:
+        grouped.setdefault(int(step["episode"]), []).append(step)
+    return grouped
+
+
+def _n_belief_links(belief: dict[str, Any]) -> int:
+    return sum(1 for name in belief if name.startswith("m_"))
+
+
+def run_links(run_dir: Path, summary: dict[str, Any]) -> dict[int, int]:
+    """Belief link -> true link, from the poses at the first filter step of episode 0."""
+    steps = summary.get("filter_steps") or []
+    n_belief = _n_belief_links(summary.get("belief") or {})
+    n_true = len(summary["ground_truth"]["object"]["links"])
+    if not steps or n_belief == n_true == 1:
+        return {b: b for b in range(min(n_belief, n_true))}
+    first = steps[0]
+    with np.load(run_dir / "episodes" / f"{int(first['episode']):04d}" / "data.npz") as data:
+        true_xy = np.asarray(data["object_pose"][0, :, :2], dtype=np.float64)
+    return match_links(belief_poses([first], range(n_belief))[0, :, :2], true_xy)
+
+
+# ---------------------------------------------------------------------------------------------
+# Planning the runs
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """What ``vistac eval`` evaluates."""
+
+    skill: Path
+    out: Path
+    objects: tuple[str, ...] = ("test",)
+    checkpoints: Path | None = None
+    models: tuple[str, ...] = MODELS
+    max_objects: int | None = None
+    max_interactions: int | None = None
+    seed: int | None = None
+    overrides: tuple[str, ...] = ()
+
+
+@dataclass
+class RunPlan:
+    """One skill run (or the reason it is skipped)."""
+
+    object_path: Path
+    spec: ObjectSpec
+    variant: str
+    overrides: list[str] = field(default_factory=list)
+    skipped: str | None = None
+
+    @property
+    def model(self) -> str:
+        return "gnn" if self.variant == FIXED else self.variant
+
+
+def parse_models(text: str | Sequence[str]) -> tuple[str, ...]:
+    """``"gnn,ff"`` -> ("gnn", "ff"); unknown names are a ConfigError (exit 2)."""
+    names = text.split(",") if isinstance(text, str) else list(text)
+    names = [name.strip() for name in names if name.strip()]
+    unknown = [name for name in names if name not in MODELS]
+    if unknown or not names:
+        raise ConfigError(
+            f"--models: unknown model(s) {', '.join(map(repr, unknown)) or '(none)'}; "
+            f"choose from {', '.join(MODELS)}"
+        )
+    return tuple(dict.fromkeys(names))
+
+
+def skill_interaction(skill: Path) -> str:
+    """The one interaction kind (push or pull) the skill's action sampler proposes."""
+    try:
+        data = yaml.safe_load(skill.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as error:
+        raise ConfigError(f"{skill}: cannot read the skill ({error})") from None
+    components = (data or {}).get("components") or {}
+    kinds = {
+        kind
+        for component in components.values()
+        if isinstance(component, dict)
+        for kind in ((component.get("with") or {}).get("interactions") or [])
+    }
+    if len(kinds) != 1:
+        raise ConfigError(
+            f"{skill}: eval needs a skill whose action sampler has exactly one of "
+            f"'interactions: [push]' or '[pull]', found {sorted(kinds) or 'none'}"
+        )
+    return kinds.pop()
+
+
+def select_objects(selection: Sequence[str], out: Path, max_objects: int | None) -> list[Path]:
+    """Object files of the selection (split names or YAML paths), types interleaved."""
+    paths: list[Path] = []
+    split: dict[str, list[str]] | None = None
+    for item in selection:
+        if item in SPLITS:
+            split = split or write_configurations(OBJECT_SET_SEED, out / "objects")
+            paths += _interleaved([out / "objects" / f"{name}.yaml" for name in split[item]])
+        else:
+            path = Path(item)
+            if not path.is_file():
+                raise ConfigError(
+                    f"--objects: {item!r} is neither a split ({', '.join(SPLITS)}) nor an "
+                    "object YAML file"
+                )
+            paths.append(path.resolve())
+    paths = list(dict.fromkeys(paths))
+    return paths[:max_objects] if max_objects else paths
+
+
+def _interleaved(paths: list[Path]) -> list[Path]:
+    by_type = {kind: [p for p in paths if load_object(p).type == kind] for kind in OBJECT_TYPES}
+    ordered = itertools.zip_longest(*by_type.values())
+    return [path for group in ordered for path in group if path is not None]
+
+
+def _architecture(checkpoint: Path) -> dict[str, int]:
+    sidecar = checkpoint.with_name(checkpoint.name + ".json")
+    try:
+        return dict(json.loads(sidecar.read_text(encoding="utf-8"))["architecture"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
+def ff_checkpoint(folder: Path, kind: str, n_links: int) -> Path | None:
+    """An FF checkpoint for ``n_links`` links: ``ff{n}/ff_{kind}.pt`` or ``ff_{kind}.pt``."""
+    for path in (folder / f"ff{n_links}" / f"ff_{kind}.pt", folder / f"ff_{kind}.pt"):
+        if path.is_file() and _architecture(path).get("n_links", 1) == n_links:
+            return path
+    return None
+
+
+def model_override(model: str, spec: ObjectSpec, folder: Path, kind: str) -> tuple[str | None, str]:
+    """The ``components.model=...`` override of ``model`` for ``spec``, or (None, why not)."""
+    n_links = len(spec.links)
+    if model == "analytical":
+        if spec.type != "homogeneous":
+            return None, f"filters.analytical models homogeneous objects only ({spec.type})"
+        return "components.model=" + json.dumps({"plugin": "filters.analytical"}), ""
+    if model == "gnn":
+        path: Path | None = folder / f"gnn_{kind}.pt"
+        if path is None or not path.is_file():
+            return None, f"no GNN checkpoint {path}"
+        settings: dict[str, Any] = {"checkpoint": str(path.resolve())}
+    else:
+        path = ff_checkpoint(folder, kind, n_links)
+        if path is None:
+            want = f"ff{n_links}/ff_{kind}.pt"
+            return None, f"no FF checkpoint for {n_links} link(s) in {folder} ({want})"
+        settings = {"checkpoint": str(path.resolve()), "n_links": n_links}
+    settings |= {k: v for k, v in _architecture(path).items() if k == "hidden"}
+    return "components.model=" + json.dumps({"plugin": f"filters.{model}", "with": settings}), ""
+
+
+def plan_runs(options: EvalOptions, objects: Sequence[Path], kind: str) -> list[RunPlan]:
+    """Every (object, model) run with its ``--set`` overrides or its skip reason."""
+    folder = options.checkpoints or options.skill.parent / "checkpoints"
+    common = list(options.overrides)
+    noise = folder / f"obs_noise_{kind}.pt"
+    if noise.is_file():
+        common.append(f"components.filter.with.noise_checkpoint={noise.resolve()}")
+    if options.max_interactions:
+        common.append(f"tree.sequence.1.repeat.max={options.max_interactions}")
+    variants = [*options.models, *([FIXED] if "gnn" in options.models else [])]
+    plans = []
+    for path in objects:
+        spec = load_object(path)
+        for variant in variants:
+            plan = RunPlan(path, spec, variant)
+            model, why = model_override(plan.model, spec, folder, kind)
+            if model is None:
+                plan.skipped = why
+            else:
+                plan.overrides = [*common, f"components.world.with.object={path.resolve()}", model]
+                if variant == FIXED:
+                    plan.overrides.append("components.filter.with.estimate_parameters=false")
+            plans.append(plan)
+    return plans
+
+
+# ---------------------------------------------------------------------------------------------
+# Running and scoring
+
+
+def run_dir_of(out: Path, plan: RunPlan) -> Path:
+    """Where ``plan``'s run is recorded."""
+    return out / "runs" / plan.spec.name / plan.variant
+
+
+def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
+    """Run the skill for ``plan`` (reusing a finished run with the same arguments)."""
+    from vistac.cli import main
+
+    run_dir = run_dir_of(options.out, plan)
+    args = ["-q", "run", str(options.skill), "--out", str(run_dir), "--overwrite"]
+    args += ["--seed", str(options.seed)] if options.seed is not None else []
+    for override in plan.overrides:
+        args += ["--set", override]
+    stamp = run_dir / "eval_args.json"
+    done = (run_dir / "summary.json").is_file() and stamp.is_file()
+    if done and json.loads(stamp.read_text(encoding="utf-8")) == args:
+        log.info("reusing %s", run_dir)
+        return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0}
+    log.info("running %s on %s", plan.variant, plan.spec.name)
+    level = logging.getLogger("vistac").level
+    printed = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(printed):
+            code = main(args)
+    finally:  # the nested CLI call resets the package's log level to -q
+        logging.getLogger("vistac").setLevel(level)
+    log.debug("%s", printed.getvalue())
+    if code != 0:
+        return {"status": "failed", "run_dir": str(run_dir), "exit_code": code,
+                "reason": f"the skill run exited with {code}; see {run_dir}"}  # fmt: skip
+    stamp.write_text(json.dumps(args), encoding="utf-8")
+    return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0}
+
+
+def score_run(run_dir: Path) -> dict[str, Any]:
+    """Parameter pairs (final and after each interaction) and tracking errors of one run."""
+    summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+    truth = summary["ground_truth"]["parameters"]
+    links = run_links(run_dir, summary)
+    history = [parameter_pairs(b, truth, links) for b in summary.get("belief_history", [])]
+    return {
+        "links": {str(b): t for b, t in links.items()},
+        "belief_links": _n_belief_links(summary.get("belief") or {}),
+        "interactions": len(summary.get("episodes", [])),
+        "parameters": parameter_pairs(summary.get("belief") or {}, truth, links),
+        "history": history,
+        "tracking": tracking_errors(run_dir, summary, links),
+    }
+
+
+def run_record(plan: RunPlan, options: EvalOptions, kind: str) -> dict[str, Any]:
+    """Execute and score one planned run; the record eval.json keeps of it."""
+    record: dict[str, Any] = {
+        "object": plan.spec.name, "object_file": str(plan.object_path), "type": plan.spec.type,
+        "kind": kind, "model": plan.model, "variant": plan.variant,
+    }  # fmt: skip
+    if plan.skipped:
+        log.info("skipping %s on %s: %s", plan.variant, plan.spec.name, plan.skipped)
+        return record | {"status": "skipped", "reason": plan.skipped}
+    record |= execute(plan, options)
+    if record["status"] == "ok":
+        record |= score_run(Path(record["run_dir"]))
+    return record
+
+
+def _scored(records: Sequence[dict[str, Any]], variant: str) -> list[dict[str, Any]]:
+    return [r for r in records if r["variant"] == variant and r["status"] == "ok"]
+
+
+def nrmse_tables(
+    records: Sequence[dict[str, Any]], ranges: dict[str, float], variants: Sequence[str]
+) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
+    """{type: {kind: {variant: {row: NRMSE}}}} of the final beliefs, plus type ``all``."""
+    tables: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
+    for kind_type in [*OBJECT_TYPES, "all"]:
+        for kind in sorted({r["kind"] for r in records}):
+            for variant in variants:
+                runs = [
+                    r["parameters"] for r in _scored(records, variant)
+                    if r["kind"] == kind and kind_type in ("all", r["type"])
+                ]  # fmt: skip
+                if runs:
+                    cell = tables.setdefault(kind_type, {}).setdefault(kind, {})
+                    cell[variant] = nrmse_rows(runs, ranges) | {"runs": float(len(runs))}
+    return tables
+
+
+def nrmse_by_interaction(
+    records: Sequence[dict[str, Any]], ranges: dict[str, float], variants: Sequence[str]
+) -> dict[str, list[float]]:
+    """Overall NRMSE after interaction 1, 2, ... per variant (runs that got that far)."""
+    curves: dict[str, list[float]] = {}
+    for variant in variants:
+        runs = _scored(records, variant)
+        longest = max((len(r["history"]) for r in runs), default=0)
+        curves[variant] = [
+            nrmse_rows([r["history"][i] for r in runs if len(r["history"]) > i], ranges)["overall"]
+            for i in range(longest)
+        ]
+    return curves
+
+
+def tracking_table(records: Sequence[dict[str, Any]]) -> dict[str, dict[str, dict[str, float]]]:
+    """{type: {variant: mean position error (m), angle error (rad), runs}}, plus ``all``."""
+    table: dict[str, dict[str, dict[str, float]]] = {}
+    for kind_type in [*OBJECT_TYPES, "all"]:
+        for variant in sorted({r["variant"] for r in records}):
+            runs = [
+                r["tracking"] for r in _scored(records, variant)
+                if kind_type in ("all", r["type"]) and r["tracking"]["steps"] > 0
+            ]  # fmt: skip
+            if runs:
+                table.setdefault(kind_type, {})[variant] = {
+                    "position_m": float(np.mean([t["position_m"] for t in runs])),
+                    "angle_rad": float(np.mean([t["angle_rad"] for t in runs])),
+                    "runs": float(len(runs)),
+                }
+    return table
+
+
+# ---------------------------------------------------------------------------------------------
+# Reports
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.3f}" if math.isfinite(value) else "-"
+
+
+def tables_markdown(
+    tables: dict[str, dict[str, dict[str, dict[str, float]]]],
+    tracking: dict[str, dict[str, dict[str, float]]],
+) -> str:
+    """Markdown NRMSE tables (one per object type and interaction) and the tracking table."""
+    lines = ["# Parameter NRMSE (RMSE / range over the object set)", ""]
+    for kind_type, by_kind in tables.items():
+        for kind, by_variant in by_kind.items():
+            variants = list(by_variant)
+            rows = sorted(
+                {r for v in by_variant.values() for r in v} - {"overall", "runs"}, key=_row_order
+            )
+            lines += [f"## {kind_type} objects, {kind}", ""]
+            lines += ["| parameter | " + " | ".join(variants) + " |"]
+            lines += ["|---|" + "---:|" * len(variants)]
+            for row in [*rows, "overall", "runs"]:
+                cells = [by_variant[v].get(row, float("nan")) for v in variants]
+                text = [f"{c:.0f}" if row == "runs" else _fmt(c) for c in cells]
+                lines += [f"| {row} | " + " | ".join(text) + " |"]
+            lines += [""]
+    lines += ["# Pose tracking (mean error of the pose change since each episode's start)", ""]
+    lines += [
+        "| objects | model | position (mm) | angle (deg) | runs |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for kind_type, by_variant in tracking.items():
+        for variant, values in by_variant.items():
+            lines += [
+                f"| {kind_type} | {variant} | {_fmt(values['position_m'] * 1000)} | "
+                f"{_fmt(math.degrees(values['angle_rad']))} | {values['runs']:.0f} |"
+            ]
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(curves: dict[str, list[float]], path: Path) -> None:
+    """Overall NRMSE vs interaction number, one line per model (Fig. 12-14)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(5, 3.5))
+    for variant, values in curves.items():
+        if values:
+            axes.plot(range(1, len(values) + 1), values, marker="o", label=variant)
+    axes.set_xlabel("interaction")
+    axes.set_ylabel("overall NRMSE")
+    axes.grid(alpha=0.3)
+    axes.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
+def belief_series(
+    steps: Sequence[dict[str, Any]], link: int
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """(mean [T], std [T]) of m, f and the radial CoM (delta-method std) of belief ``link``."""
+
+    def column(name: str, key: str) -> np.ndarray:
+        return np.array([step[f"{name}_{link}"][key] for step in steps], dtype=np.float64)
+
+    x, y = column("com_x", "mean"), column("com_y", "mean")
+    sx, sy = column("com_x", "std"), column("com_y", "std")
+    radius = np.hypot(x, y)
+    spread = np.hypot(sx, sy)
+    com_std = np.where(
+        radius > spread, np.hypot(x * sx, y * sy) / np.maximum(radius, 1e-12), spread
+    )
+    return {
+        "m": (column("m", "mean"), column("m", "std")),
+        "f": (column("f", "mean"), column("f", "std")),
+        "CoM": (radius, com_std),
+    }
+
+
+def plot_belief(run_dir: Path, record: dict[str, Any], path: Path) -> None:
+    """Mean ± 2 std of m, f, radial CoM of belief link 0 over time, truth as a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+    steps = summary.get("filter_steps") or []
+    if not steps or "0" not in record["links"]:
+        return
+    true_link = record["links"]["0"]
+    time_s = np.array([step["time_s"] for step in steps], dtype=np.float64)
+    figure, axes = plt.subplots(3, 1, figsize=(6, 6), sharex=True)
+    units = {"m": "mass (kg)", "f": "friction", "CoM": "radial CoM (m)"}
+    for ax, (family, (mean, std)) in zip(axes, belief_series(steps, 0).items(), strict=True):
+        ax.plot(time_s, mean, ".", markersize=2, label="mean")
+        ax.fill_between(time_s, mean - 2 * std, mean + 2 * std, alpha=0.3, label="± 2 std")
+        if f"{family}_{true_link}" in record["parameters"]:
+            ax.axhline(record["parameters"][f"{family}_{true_link}"][1], color="k", label="truth")
+        ax.set_ylabel(units[family])
+    axes[0].set_title(f"{record['object']}: {record['variant']} (belief link 0)")
+    axes[0].legend(fontsize=7)
+    axes[-1].set_xlabel("time (s)")
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
+def evaluate(options: EvalOptions) -> dict[str, Any]:
+    """Run every planned (object, model) pair and write tables, plots and eval.json."""
+    kind = skill_interaction(options.skill)
+    options.out.mkdir(parents=True, exist_ok=True)
+    objects = select_objects(options.objects, options.out, options.max_objects)
+    if not objects:
+        raise ConfigError("--objects: no objects selected")
+    plans = plan_runs(options, objects, kind)
+    records = [run_record(plan, options, kind) for plan in plans]
+    ranges = parameter_ranges()
+    variants = list(dict.fromkeys(plan.variant for plan in plans))
+    report = {
+        "skill": str(options.skill), "interaction": kind, "seed": options.seed,
+        "objects": [str(p) for p in objects], "models": list(options.models),
+        "ranges": ranges,
+        "ranges_note": "m, f, f_j: the object set's sampling ranges; CoM: range of the radial "
+        "CoM over the 120 generated configurations",
+        "tables": nrmse_tables(records, ranges, [v for v in variants if v != FIXED]),
+        "nrmse_vs_interactions": nrmse_by_interaction(records, ranges, variants),
+        "tracking": tracking_table(records),
+        "runs": records,
+    }  # fmt: skip
+    _write_reports(report, options.out)
+    return report
+
+
+def _write_reports(report: dict[str, Any], out: Path) -> None:
+    (out / "eval.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
+    (out / "tables.json").write_text(
+        json.dumps({key: report[key] for key in ("ranges", "tables", "tracking",
+                                                   "nrmse_vs_interactions")}, indent=2),
+        encoding="utf-8",
+    )  # fmt: skip
+    (out / "tables.md").write_text(tables_markdown(report["tables"], report["tracking"]),
+                                   encoding="utf-8")  # fmt: skip
+    plot_curves(report["nrmse_vs_interactions"], out / "nrmse_vs_interactions.png")
+    for record in report["runs"]:
+        if record["status"] == "ok":
+            name = f"belief_{record['object']}_{record['variant']}.png"
+            plot_belief(Path(record["run_dir"]), record, out / name)
