@@ -17,7 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import Row
 
-MODULES = ("bench_sim", "bench_cli", "bench_shape_fit", "bench_filter")
+MODULES = ("bench_sim", "bench_cli", "bench_shape_fit", "bench_filter", "bench_actions")
 
 
 def machine() -> str:

@@ -46,7 +46,9 @@ def test_summary_reports_views_and_time(tmp_path: Path) -> None:
     assert summary["views_taken"] == 4
 
 
-def test_an_empty_scene_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_an_empty_scene_is_a_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     # Looking at the sky: no table, no object.
     code = main(["-q", "run", str(SKILLS / "perceive_shape.yaml"), "--out", str(tmp_path / "x"),
                  "--set", "components.views.with.target_m=[0.0, 3.0, 0.03]",

@@ -21,7 +21,9 @@ def table_points(rng: np.random.Generator, count: int = 20_000) -> np.ndarray:
     return np.column_stack([xy, rng.normal(0.0, 0.001, count)])
 
 
-def box_points(rng: np.random.Generator, centre: tuple[float, float], z0: float = 0.0) -> np.ndarray:
+def box_points(
+    rng: np.random.Generator, centre: tuple[float, float], z0: float = 0.0
+) -> np.ndarray:
     """The visible surface (no bottom) of a rect1 prism (90 x 90 x 50 mm) at ``centre``."""
     polygon = footprint_polygon("rect1")
     points = prism_surface_points(polygon, 0.05, 6000, rng)

@@ -11,5 +11,11 @@ _PACKAGE = "vistac.plugins.actions"
 @hookimpl
 def vistac_register(registry: Registry) -> None:
     registry.add("action_sampler", "actions.outline", f"{_PACKAGE}.outline:OutlineSampler")
+    registry.add(
+        "action_sampler", "actions.affordances", f"{_PACKAGE}.affordances:SuperquadricAffordances"
+    )
+    registry.add("action_sampler", "actions.push_pull_rule", f"{_PACKAGE}.affordances:PushPullRule")
     registry.add("action_selector", "actions.random", f"{_PACKAGE}.selectors:RandomSelector")
+    registry.add("action_selector", "actions.uniform", f"{_PACKAGE}.selectors:UniformSelector")
+    registry.add("action_selector", "actions.info_gain", f"{_PACKAGE}.info_gain:InfoGainSelector")
     registry.add("executor", "actions.cartesian", f"{_PACKAGE}.executor:CartesianExecutor")

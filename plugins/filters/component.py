@@ -11,14 +11,16 @@ The belief is carried from one interaction to the next.
 from __future__ import annotations
 
 import logging
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, cast
 
 import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
 from vistac.errors import ConfigError, DataError
-from vistac.plugins.filters.dual import Belief, DualFilter
+from vistac.plugins.actions.executor import CartesianExecutor
+from vistac.plugins.filters.dual import Belief, DualFilter, ObservationModel
 from vistac.plugins.filters.models import load_checkpoint
 from vistac.plugins.filters.observation import (
     DepthProjector,
@@ -28,7 +30,7 @@ from vistac.plugins.filters.observation import (
 )
 from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
 from vistac.protocols import Episode, Scene, StepObservation
-from vistac.types import FloatArray, GaussianBelief, ShapeEstimate, action_point
+from vistac.types import Action, FloatArray, GaussianBelief, Pull, ShapeEstimate, action_point
 
 log = logging.getLogger(__name__)
 
@@ -167,6 +169,79 @@ class DualFilterComponent(Component):
                     {"episode": episode.index, "time_s": step.time_s, **self._public().as_dict()}
                 )
         return self._public()
+
+    def predict_beliefs(
+        self,
+        actions: Sequence[Action],
+        horizon_s: float,
+        rate_hz: float,
+        sigma_points: int | None = None,
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """The belief ``round(horizon_s * rate_hz)`` prediction steps (paper 1, eq. 21-26; no
+        observation) into each action, from the current belief with the object at rest as
+        ``update`` starts from (a zero horizon returns that start belief).
+
+        The TCP starts at the action point (a push's contact point less the executor's
+        ``pusher_offset_m`` along pd, so the pad touches it) and moves along pd at the action's
+        speed. All actions are predicted in one batch with the same noise draws (a generator
+        seeded by the skill seed on every call), so their beliefs differ only by the action.
+        ``sigma_points``: C for the look-ahead (default: the filter's). Returns per action
+        (mean [n], covariance [n, n]), float64.
+        """
+        if self.belief is None or self.layout is None or self.shape is None:
+            raise DataError("filters.dual: predict_beliefs before initialise")
+        if not actions:
+            return []
+        current = self.belief
+        self._inflate_pose()
+        start, self.belief = self.belief, current
+        batch = len(actions)
+        points = np.array([action_point(action) for action in actions])
+        headings = np.array([[np.cos(a.pd_rad), np.sin(a.pd_rad)] for a in actions])
+        executor_config = getattr(self.ctx.find("executor"), "config", None)
+        default_m = CartesianExecutor.Config().pusher_offset_m
+        offset_m = float(getattr(executor_config, "pusher_offset_m", default_m))
+        is_pull = np.array([isinstance(action, Pull) for action in actions])
+        tcp_xy = points - np.where(is_pull, 0.0, offset_m)[:, None] * headings
+        yaw = [a.grasp_axis_rad if isinstance(a, Pull) else a.pd_rad for a in actions]
+        velocity = np.array([a.speed_mps for a in actions])[:, None] * headings
+        _, sizes = link_boxes(self.shape)
+        poses = self.layout.link_pose(start.mean).numpy()[:, :3]
+        links = nearest_link(np.column_stack([points, np.zeros(batch)]), poses, sizes)
+        fixed = {
+            "pd_rad": torch.tensor([a.pd_rad for a in actions], dtype=DTYPE),
+            "is_pull": torch.as_tensor(is_pull, dtype=DTYPE),
+            "link": torch.as_tensor(links),
+            "link_size_m": torch.as_tensor(sizes, dtype=DTYPE).expand(batch, -1, -1),
+            "link_offset": torch.as_tensor(relative_poses(poses), dtype=DTYPE).expand(
+                batch, -1, -1
+            ),
+        }
+        # Prediction only: the observation model is never called.
+        filter_ = DualFilter(
+            self.layout, self.model, cast(ObservationModel, None),
+            sigma_points or self.config.sigma_points,
+        )  # fmt: skip
+        generator = torch.Generator().manual_seed(self.ctx.seed)
+        mean = start.mean.expand(batch, -1)
+        belief = Belief(mean, start.cov.expand(batch, -1, -1))
+        dt_s = 1.0 / rate_hz
+        with torch.no_grad():
+            for step in range(round(horizon_s * rate_hz)):
+                xy = tcp_xy + velocity * step * dt_s
+                tcp = np.column_stack([xy, yaw, velocity, np.zeros(batch)])
+                inputs = ProcessInput(tcp=torch.as_tensor(tcp, dtype=DTYPE), **fixed)
+                state_noise = torch.randn(
+                    (filter_.sigma_points, self.layout.size), generator=generator, dtype=DTYPE
+                )
+                process_noise = torch.randn(
+                    (filter_.sigma_points, self.layout.n_pose), generator=generator, dtype=DTYPE
+                )
+                belief, _, _ = filter_.propagate(
+                    belief, inputs, dt_s,
+                    state_noise.expand(batch, -1, -1), process_noise.expand(batch, -1, -1),
+                )  # fmt: skip
+        return [(belief.mean[i], belief.cov[i]) for i in range(batch)]
 
     def step_history(self) -> list[dict[str, Any]]:
         """The belief after every filter step so far: episode, time_s and per entry

@@ -94,7 +94,8 @@ class TrainConfig(BaseModel):
 PRESETS: dict[str, TrainConfig] = {
     "tiny": TrainConfig(
         shipped_train=("rect1",), shipped_val=("rect3",), models=("gnn", "ff"),
-        collect_overrides=("tree.sequence.0.repeat.max=6",), hidden=32, epochs=8, noise_epochs=2, filter_epochs=1,
+        collect_overrides=("tree.sequence.0.repeat.max=6",), hidden=32, epochs=8,
+        noise_epochs=2, filter_epochs=1,
         filter_sigma_points=16, filter_windows=4, batch_size=8,
     ),
     "paper": TrainConfig(objects="generated", runs_per_object=1, epochs=60, patience=8),

@@ -68,7 +68,10 @@ def shape_errors(shape: dict[str, Any], truth: dict[str, Any], seed: int = 0) ->
     trees = [cKDTree(points) for points in fitted]
     matrix = np.array(
         [
-            [link_chamfer_m(f, tree, link, pose, rng) for link, pose in zip(spec.links, poses)]
+            [
+                link_chamfer_m(f, tree, link, pose, rng)
+                for link, pose in zip(spec.links, poses, strict=True)
+            ]
             for f, tree in zip(fitted, trees, strict=True)
         ]
     )

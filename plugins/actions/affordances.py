@@ -1,0 +1,203 @@
+"""``actions.affordances`` and ``actions.push_pull_rule``: candidates on the fitted superquadrics.
+
+Paper 1, III-E (Monte-Carlo sampling of action affordances): the contact point ``cp`` or grasp
+point ``gp`` and the contact normal ``cn`` come from each link's estimated superquadric, and a
+push goes along the inward normal plus U(-jitter, jitter). The outline of a link is its
+cross-section at mid height (the plane z = its centre's height), traced densely by bisection
+along rays from the centre (the tapered and sheared superquadric is star-shaped about it), with
+outward normals by finite differences of that closed curve. Pulls close the fingers along the
+outline normal where the chord across the link along it fits the gripper, then move along a
+direction drawn around ``pull_towards_rad`` as in ``actions.outline``.
+
+``actions.push_pull_rule`` (III-D) picks the interaction from the object instead of the
+``interactions`` option: push only for one link; otherwise pull when the object lies beyond
+the table edge (its y below ``edge_y_m``), push when it does not.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+from vistac.component import ComponentContext
+from vistac.errors import DataError
+from vistac.plugins.actions.outline import OutlineSampler, chord, point_on_outline
+from vistac.plugins.shape.superquadric import inside_outside, to_superquadric_frame
+from vistac.protocols import Scene
+from vistac.types import Action, FloatArray, Pull, Push, ShapeEstimate, Superquadric
+
+log = logging.getLogger(__name__)
+
+OUTLINE_POINTS = 720
+"""Rays (one per half degree) tracing a link's mid-height outline."""
+_BISECTIONS = 40
+_MAX_RADIUS_FACTOR = 4.0
+"""The bisection searches radii up to this times the longest semi-axis (taper and shear
+stretch the footprint by at most 2 + 1)."""
+
+Interaction = Literal["push", "pull"]
+
+
+def link_outline(link: Superquadric, count: int = OUTLINE_POINTS) -> tuple[FloatArray, FloatArray]:
+    """The mid-height cross-section of a superquadric in the world table plane.
+
+    Returns counter-clockwise points [count, 2] (m) with F = 1 (eq. 1-2) and their outward unit
+    normals [count, 2] (central differences along the curve).
+    """
+    centre = link.world_from_sq[:3, 3]
+    angles = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
+    rays = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(count)])
+    low = np.zeros(count)
+    high = np.full(count, _MAX_RADIUS_FACTOR * float(np.max(link.scale_m)))
+    for _ in range(_BISECTIONS):
+        middle = 0.5 * (low + high)
+        local = to_superquadric_frame(link, centre + middle[:, None] * rays)
+        inside = inside_outside(local, link.scale_m, link.exponents, link.taper) < 1.0
+        low, high = np.where(inside, middle, low), np.where(inside, high, middle)
+    points = centre[:2] + (0.5 * (low + high))[:, None] * rays[:, :2]
+    tangent = np.roll(points, -1, axis=0) - np.roll(points, 1, axis=0)
+    normals = np.column_stack([tangent[:, 1], -tangent[:, 0]])
+    return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def inside_link(link: Superquadric, points_xy: FloatArray) -> FloatArray:
+    """Whether table-plane points [N, 2] lie inside the link at its mid height: bool [N]."""
+    height = np.full((len(points_xy), 1), link.world_from_sq[2, 3])
+    local = to_superquadric_frame(link, np.hstack([points_xy, height]))
+    return np.asarray(inside_outside(local, link.scale_m, link.exponents, link.taper) < 1.0)
+
+
+class SuperquadricAffordances(OutlineSampler):
+    """Samples pushes and pulls on the mid-height outlines of the fitted superquadric links.
+
+    Shares the options of ``actions.outline`` (and its workspace check); its cloud options
+    (``table_clearance_m``, ``max_object_height_m``, ``cluster_cell_m``,
+    ``finger_half_width_m``) do not apply, since the shape estimate gives the outline.
+    """
+
+    class Config(OutlineSampler.Config):
+        link: Literal["all"] | int = Field(
+            "all", description="the link(s) to act on: 'all' or an index (negative from the end)"
+        )
+        approach_clearance_m: float = Field(
+            0.02, ge=0, description="pre-contact TCP distance behind a push's contact point "
+            "(the executor's standoff_m + pusher_offset_m); must be outside every other link",
+        )  # fmt: skip
+
+    def __init__(self, config: Config, ctx: ComponentContext) -> None:
+        super().__init__(config, ctx)
+        self.config: SuperquadricAffordances.Config = config
+
+    def sample(self, scene: Scene, rng: np.random.Generator) -> list[Action]:
+        """Up to ``samples`` reachable candidates (fewer where pushes or grasps are dropped)."""
+        shape = self._shape(scene)
+        return self.candidates(shape, self.interactions(shape), rng)
+
+    def interactions(self, shape: ShapeEstimate) -> list[Interaction]:
+        """The interaction kinds to draw from for this object."""
+        return list(self.config.interactions)
+
+    def candidates(
+        self, shape: ShapeEstimate, kinds: list[Interaction], rng: np.random.Generator
+    ) -> list[Action]:
+        """``samples`` draws of a kind in ``kinds``, a link and an outline point each."""
+        links = self._links(shape)
+        outlines = {index: link_outline(shape.links[index]) for index in links}
+        actions: list[Action] = []
+        for kind, index in zip(
+            rng.choice(kinds, size=self.config.samples),
+            rng.choice(links, size=self.config.samples), strict=True,
+        ):  # fmt: skip
+            outline, _ = outlines[int(index)]
+            point, outward = point_on_outline(outline, rng.uniform())
+            action = (
+                self._push(shape, int(index), point, outward, rng)
+                if kind == "push"
+                else self._pull(outline, int(index), point, outward, rng)
+            )
+            if action is not None and self._reachable(action):
+                actions.append(action)
+        log.debug("%d of %d candidates kept", len(actions), self.config.samples)
+        return actions
+
+    def _shape(self, scene: Scene) -> ShapeEstimate:
+        if scene.shape is None or not scene.shape.links:
+            raise DataError(
+                f"{type(self).__name__}: no shape estimate to sample actions on; run `look` "
+                "with a shape estimator (e.g. shape.ems) first, or use actions.outline"
+            )
+        return scene.shape
+
+    def _links(self, shape: ShapeEstimate) -> list[int]:
+        count = len(shape.links)
+        if self.config.link == "all":
+            return list(range(count))
+        if not -count <= self.config.link < count:
+            raise DataError(
+                f"actions.affordances: link {self.config.link} of a {count}-link object"
+            )
+        return [self.config.link % count]
+
+    def _push(
+        self,
+        shape: ShapeEstimate,
+        index: int,
+        point: FloatArray,
+        outward: FloatArray,
+        rng: np.random.Generator,
+    ) -> Push | None:
+        """A push at ``point`` [2] along the inward normal plus jitter; None when the
+        approach would start inside another link."""
+        jitter = np.radians(rng.uniform(-self.config.jitter_deg, self.config.jitter_deg))
+        pd_rad = float(np.arctan2(-outward[1], -outward[0]) + jitter)
+        start = point - self.config.approach_clearance_m * np.array(
+            [np.cos(pd_rad), np.sin(pd_rad)]
+        )
+        others = [link for i, link in enumerate(shape.links) if i != index]
+        if any(inside_link(link, start[None, :])[0] for link in others):
+            return None
+        return Push(point, pd_rad, self.config.speed_mps, self.config.duration_s, link=index)
+
+    def _pull(
+        self,
+        outline: FloatArray,
+        index: int,
+        point: FloatArray,
+        outward: FloatArray,
+        rng: np.random.Generator,
+    ) -> Pull | None:
+        """A grasp closing along the outline normal at ``point`` [2], or None when the chord
+        of the link along it is wider than the gripper opens."""
+        axis_rad = float(np.arctan2(outward[1], outward[0]))
+        midpoint, width_m = chord(outline, point, axis_rad)
+        if width_m > self.config.max_grasp_width_m:
+            return None
+        pd_rad = self.config.pull_towards_rad + rng.uniform(-1, 1) * self.config.pull_spread_rad
+        return Pull(
+            midpoint, float(pd_rad), self.config.speed_mps, axis_rad, self.config.duration_s,
+            link=index,
+        )  # fmt: skip
+
+
+class PushPullRule(SuperquadricAffordances):
+    """``actions.affordances`` with the interaction chosen by paper 1, III-D (the
+    ``interactions`` option is not used): one link is only pushed; an object of more links is
+    pulled when its mean link y is below ``edge_y_m`` (near the table edge) and pushed
+    otherwise."""
+
+    class Config(SuperquadricAffordances.Config):
+        edge_y_m: float = Field(0.3, description="pull objects whose y is below this (m)")
+
+    def __init__(self, config: Config, ctx: ComponentContext) -> None:
+        super().__init__(config, ctx)
+        self.config: PushPullRule.Config = config
+
+    def interactions(self, shape: ShapeEstimate) -> list[Interaction]:
+        y_m = float(np.mean(np.asarray(shape.initial_poses)[:, 1]))
+        kind: Interaction = (
+            "pull" if len(shape.links) > 1 and y_m < self.config.edge_y_m else "push"
+        )
+        log.debug("push_pull_rule: %d link(s) at y = %.3f m: %s", len(shape.links), y_m, kind)
+        return [kind]

@@ -1,0 +1,308 @@
+"""Superquadric affordances, the push/pull rule, and the uniform and info-gain selectors."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from simctx import TestContext
+from vistac.errors import ConfigError, DataError
+from vistac.plugins.actions.affordances import (
+    PushPullRule,
+    SuperquadricAffordances,
+    inside_link,
+    link_outline,
+)
+from vistac.plugins.actions.info_gain import InfoGainSelector, gaussian_kl
+from vistac.plugins.actions.selectors import UniformSelector
+from vistac.plugins.filters.dual import Belief
+from vistac.plugins.shape.superquadric import inside_outside, to_superquadric_frame
+from vistac.protocols import Scene
+from vistac.testing import build_components
+from vistac.types import Action, PointCloud, Pull, Push, ShapeEstimate, Superquadric
+
+ROOT = Path(__file__).resolve().parents[1]
+BOX = np.array([0.15, 0.04, 0.025])
+"""A wide box: 0.30 m along x (wider than the gripper), 0.08 m along y."""
+ELLIPSE = np.array([0.06, 0.03, 0.025])
+EMPTY = Scene(PointCloud(np.zeros((1, 3))))
+
+
+def _link(scale_m: np.ndarray, xy: tuple[float, float], exponents: float = 0.1) -> Superquadric:
+    pose = np.eye(4)
+    pose[:3, 3] = [xy[0], xy[1], scale_m[2]]
+    return Superquadric(scale_m, np.array([exponents, exponents]), pose)
+
+
+def _shape(*links: Superquadric) -> ShapeEstimate:
+    poses = np.array([[link.world_from_sq[0, 3], link.world_from_sq[1, 3], 0.0] for link in links])
+    cloud = PointCloud(np.random.default_rng(0).normal([0.0, 0.45, 0.03], 0.02, (300, 3)))
+    return ShapeEstimate(links, poses, np.zeros((len(links), 14)), cloud)
+
+
+def _scene(*links: Superquadric) -> Scene:
+    shape = _shape(*links)
+    return Scene(shape.cloud, shape)
+
+
+def _sampler(tmp_path: Path, cls: type = SuperquadricAffordances, **options: Any) -> Any:
+    return TestContext(tmp_path).add(cls, **options)
+
+
+def _mid_height_f(link: Superquadric, points_xy: np.ndarray) -> np.ndarray:
+    height = np.full((len(points_xy), 1), link.world_from_sq[2, 3])
+    local = to_superquadric_frame(link, np.hstack([points_xy, height]))
+    return inside_outside(local, link.scale_m, link.exponents, link.taper)
+
+
+def _angle_deg(a_rad: float, b_rad: float) -> float:
+    return abs(math.degrees(math.remainder(a_rad - b_rad, 2 * math.pi)))
+
+
+# -- outline geometry -------------------------------------------------------------------------
+
+
+def test_box_outline_points_are_on_the_surface_with_axis_normals() -> None:
+    link = _link(BOX, (0.1, 0.45))
+    points, normals = link_outline(link)
+    assert _mid_height_f(link, points) == pytest.approx(1.0, abs=1e-6)
+    local = points - [0.1, 0.45]
+    on_end = np.abs(local[:, 1]) < 0.5 * BOX[1]  # away from the (slightly rounded) corners
+    on_side = np.abs(local[:, 0]) < 0.5 * BOX[0]
+    assert on_end.sum() > 20 and on_side.sum() > 20
+    assert np.abs(normals[on_end, 0] - np.sign(local[on_end, 0])).max() < 1e-3
+    assert np.abs(normals[on_side, 1] - np.sign(local[on_side, 1])).max() < 1e-3
+
+
+def test_ellipse_outline_normals_follow_the_gradient() -> None:
+    link = _link(ELLIPSE, (0.0, 0.45), exponents=1.0)
+    points, normals = link_outline(link)
+    local = points - [0.0, 0.45]
+    assert (local[:, 0] / ELLIPSE[0]) ** 2 + (local[:, 1] / ELLIPSE[1]) ** 2 == pytest.approx(1.0)
+    gradient = local / ELLIPSE[:2] ** 2
+    expected = gradient / np.linalg.norm(gradient, axis=1, keepdims=True)
+    assert np.max(np.abs(normals - expected)) < 5e-3
+
+
+def test_tapered_and_sheared_outline_stays_on_the_surface() -> None:
+    pose = np.eye(4)
+    pose[:3, 3] = [0.0, 0.45, 0.025]
+    link = Superquadric(BOX / 2, np.array([0.2, 0.5]), pose, np.array([0.4, 0.2, 0.3]))
+    points, normals = link_outline(link)
+    assert _mid_height_f(link, points) == pytest.approx(1.0, abs=1e-6)
+    assert not inside_link(link, points + 0.002 * normals).any()
+    assert inside_link(link, points - 0.002 * normals).all()
+
+
+# -- actions.affordances ----------------------------------------------------------------------
+
+
+def test_pushes_start_on_the_outline_along_the_jittered_inward_normal(tmp_path: Path) -> None:
+    link = _link(ELLIPSE, (0.0, 0.45), exponents=1.0)
+    sampler = _sampler(tmp_path, samples=64, interactions=["push"])
+    actions = sampler.sample(_scene(link), np.random.default_rng(1))
+    assert len(actions) == 64 and all(isinstance(a, Push) for a in actions)
+    points = np.array([a.cp_m for a in actions])
+    assert _mid_height_f(link, points) == pytest.approx(1.0, abs=0.02)
+    local = points - [0.0, 0.45]
+    gradient = local / ELLIPSE[:2] ** 2
+    inward = np.arctan2(-gradient[:, 1], -gradient[:, 0])
+    errors = [_angle_deg(a.pd_rad, n) for a, n in zip(actions, inward, strict=True)]
+    assert max(errors) <= 5.5 and max(errors) > 2.0  # jittered, within +-5 deg
+
+
+def test_pulls_only_where_the_chord_fits_the_gripper(tmp_path: Path) -> None:
+    sampler = _sampler(tmp_path, samples=64, interactions=["pull"])
+    actions = sampler.sample(_scene(_link(BOX, (0.0, 0.45))), np.random.default_rng(2))
+    assert 32 < len(actions) < 64 and all(isinstance(a, Pull) for a in actions)
+    # Fingers close across y (0.08 m; tilted up to ~20 deg at the rounded corners), never
+    # along the 0.30 m long axis: the grasps sampled on the short ends are dropped.
+    assert all(_angle_deg(a.grasp_axis_rad % math.pi, math.pi / 2) < 25.0 for a in actions)
+    assert all(abs(a.gp_m[1] - 0.45) < 1e-3 for a in actions)  # the chord's midpoint
+    narrow = _sampler(tmp_path, samples=64, interactions=["pull"], max_grasp_width_m=0.05)
+    assert narrow.sample(_scene(_link(BOX, (0.0, 0.45))), np.random.default_rng(2)) == []
+
+
+def test_unreachable_candidates_are_dropped(tmp_path: Path) -> None:
+    workspace = ((-0.45, 0.45), (0.2, 0.47))
+    sampler = _sampler(tmp_path, samples=64, workspace_xy_m=workspace)
+    actions = sampler.sample(_scene(_link(BOX, (0.0, 0.45))), np.random.default_rng(3))
+    assert 0 < len(actions) < 64
+    for action in actions:
+        start = action.cp_m if isinstance(action, Push) else action.gp_m
+        end = start + action.speed_mps * action.duration_s * np.array(
+            [math.cos(action.pd_rad), math.sin(action.pd_rad)]
+        )
+        assert 0.2 <= start[1] <= 0.47 and 0.2 <= end[1] <= 0.47
+
+
+def test_pushes_whose_approach_starts_inside_another_link_are_dropped(tmp_path: Path) -> None:
+    left, right = _link(BOX / 2, (-0.075, 0.45)), _link(BOX / 2, (0.085, 0.45))  # 1 cm gap
+    sampler = _sampler(tmp_path, samples=200, interactions=["push"], link=0)
+    actions = sampler.sample(_scene(left, right), np.random.default_rng(4))
+    assert all(a.link == 0 for a in actions) and 0 < len(actions) < 200
+    starts = np.array(
+        [a.cp_m - 0.02 * np.array([math.cos(a.pd_rad), math.sin(a.pd_rad)]) for a in actions]
+    )
+    assert not inside_link(right, starts).any()
+    assert not any(a.cp_m[0] > -0.01 and abs(a.cp_m[1] - 0.45) < 0.015 for a in actions)
+
+
+def test_affordances_need_a_shape(tmp_path: Path) -> None:
+    scene = Scene(_shape(_link(BOX, (0.0, 0.45))).cloud)
+    with pytest.raises(DataError, match="no shape estimate"):
+        _sampler(tmp_path).sample(scene, np.random.default_rng(0))
+
+
+def test_sampling_is_seeded_by_the_rng(tmp_path: Path) -> None:
+    scene = _scene(_link(BOX, (0.0, 0.45)))
+    first = _sampler(tmp_path).sample(scene, np.random.default_rng(5))
+    second = _sampler(tmp_path).sample(scene, np.random.default_rng(5))
+    assert [a.pd_rad for a in first] == [a.pd_rad for a in second]
+
+
+# -- actions.push_pull_rule --------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("links", "y_m", "kind"),
+    [(2, 0.25, "pull"), (2, 0.45, "push"), (1, 0.25, "push")],
+    ids=["two-links-near-edge", "two-links-far", "one-link-near-edge"],
+)
+def test_push_pull_rule(tmp_path: Path, links: int, y_m: float, kind: str) -> None:
+    parts = [_link(BOX / 2, (-0.08 + 0.16 * i, y_m)) for i in range(links)]
+    sampler = _sampler(tmp_path, PushPullRule, samples=32, workspace_xy_m=((-1, 1), (-1, 1)))
+    actions = sampler.sample(_scene(*parts), np.random.default_rng(6))
+    assert actions and {a.kind for a in actions} == {kind}
+
+
+# -- KL and info gain ------------------------------------------------------------------------
+
+
+def _t(values: Any) -> torch.Tensor:
+    return torch.as_tensor(values, dtype=torch.float64)
+
+
+@pytest.mark.parametrize(
+    ("p", "q", "expected"),
+    [
+        (([1.0], [[2.0]]), ([0.0], [[1.0]]), 0.5 * (2.0 - math.log(2.0))),
+        (([1.0, 0.0], [[1.0, 0.0], [0.0, 4.0]]), ([0.0, 0.0], [[2.0, 0.0], [0.0, 1.0]]),
+         0.5 * (3.0 - math.log(2.0))),
+        (([0.0, 0.0], [[1.0, 0.5], [0.5, 1.0]]), ([0.0, 0.0], [[1.0, 0.0], [0.0, 1.0]]),
+         -0.5 * math.log(0.75)),
+    ],
+    ids=["1d", "2d-diagonal", "2d-correlated"],
+)  # fmt: skip
+def test_gaussian_kl_matches_hand_computed_values(p: Any, q: Any, expected: float) -> None:
+    kl = gaussian_kl(_t(p[0]), _t(p[1]), _t(q[0]), _t(q[1]))
+    assert float(kl) == pytest.approx(expected, rel=1e-9)
+    assert float(gaussian_kl(_t(q[0]), _t(q[1]), _t(q[0]), _t(q[1]))) == pytest.approx(0.0)
+
+
+def _info_gain(tmp_path: Path, seed: int = 0) -> tuple[InfoGainSelector, Any]:
+    """An info-gain selector over a dual filter with the analytical model, initialised on a
+    90 x 90 mm box at (0, 0.45)."""
+    specs = {
+        "model": {"plugin": "filters.analytical"},
+        "filter": {"plugin": "filters.dual"},
+        "planner": {"plugin": "actions.info_gain"},
+    }
+    ctx = build_components(specs, tmp_path, seed=seed)
+    filter_ = ctx.component("filter")
+    square = _link(np.array([0.045, 0.045, 0.025]), (0.0, 0.45))
+    filter_.initialise(_scene(square))
+    return ctx.component("planner"), filter_
+
+
+def _certain_but(filter_: Any, name: str) -> None:
+    """A hand-made belief: the initial mean, small stds, and 15 mm std in ``name``."""
+    std = torch.tensor([0.005, 0.005, 0.05, 1e-3, 1e-3, 1e-3, 0.02, 0.02, 1e-3, 1e-3])
+    std[filter_.layout.index(name)] = 0.015
+    filter_.belief = Belief(filter_.belief.mean.clone(), torch.diag(std.double() ** 2))
+
+
+CENTRAL_X = Push(np.array([-0.045, 0.45]), 0.0, 0.02)
+"""Pushes along +x through the middle of the left side: the torque about the CoM is
+com_y times the force, so the rotation reveals com_y (and not com_x)."""
+CENTRAL_Y = Push(np.array([0.0, 0.405]), math.pi / 2, 0.02)
+"""Pushes along +y through the middle of the near side: reveals com_x, not com_y."""
+
+
+@pytest.mark.parametrize(
+    ("uncertain", "informative", "other"),
+    [("com_y_0", CENTRAL_X, CENTRAL_Y), ("com_x_0", CENTRAL_Y, CENTRAL_X)],
+)
+def test_info_gain_prefers_the_action_that_excites_the_uncertain_parameter(
+    tmp_path: Path, uncertain: str, informative: Push, other: Push
+) -> None:
+    selector, filter_ = _info_gain(tmp_path)
+    _certain_but(filter_, uncertain)
+    gains = selector.gains([other, informative])
+    assert float(gains[1]) > 1.2 * float(gains[0])
+    scene = _scene(_link(np.array([0.045, 0.045, 0.025]), (0.0, 0.45)))
+    assert selector.select([other, informative], scene, np.random.default_rng(0)) is informative
+
+
+def test_info_gain_selection_is_deterministic_under_a_seed(tmp_path: Path) -> None:
+    square = _link(np.array([0.045, 0.045, 0.025]), (0.0, 0.45))
+    candidates = _sampler(tmp_path, samples=16).sample(_scene(square), np.random.default_rng(7))
+
+    def choose(index: int) -> tuple[int, list[float]]:
+        selector, _ = _info_gain(tmp_path / str(index))
+        chosen = selector.select(candidates, _scene(square), np.random.default_rng(index))
+        position = next(i for i, c in enumerate(candidates) if c is chosen)
+        return position, selector.gains(candidates).tolist()
+
+    assert choose(0) == choose(1)
+
+
+def test_predictions_do_not_depend_on_the_other_candidates(tmp_path: Path) -> None:
+    _, filter_ = _info_gain(tmp_path)
+    alone = filter_.predict_beliefs([CENTRAL_X], 1.0, 15.0)[0]
+    batched = filter_.predict_beliefs([CENTRAL_Y, CENTRAL_X], 1.0, 15.0)[1]
+    assert torch.allclose(alone[0], batched[0]) and torch.allclose(alone[1], batched[1])
+    start_mean, _ = filter_.predict_beliefs([CENTRAL_X], 0.0, 15.0)[0]
+    assert torch.equal(start_mean, filter_.belief.mean)  # at rest: zero twist already
+    assert float(alone[0][0]) > float(start_mean[0]) + 0.01  # pushed along +x
+
+
+def test_info_gain_needs_a_filter_with_predictions(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="needs a filter"):
+        build_components({"planner": {"plugin": "actions.info_gain"}}, tmp_path).component(
+            "planner"
+        )
+    ctx = TestContext(tmp_path)
+    ctx.components["filter"] = object()
+    with pytest.raises(ConfigError, match="object has none"):
+        ctx.add(InfoGainSelector)
+
+
+# -- actions.uniform ---------------------------------------------------------------------------
+
+
+def test_uniform_cycles_through_the_directions(tmp_path: Path) -> None:
+    degrees = [100, -95, 10, 170, 60, -40]
+    candidates: list[Action] = [Push(np.array([0.0, 0.4]), math.radians(d), 0.02) for d in degrees]
+    selector = TestContext(tmp_path).add(UniformSelector, directions=4)
+    chosen = [selector.select(candidates, EMPTY, np.random.default_rng(i)).pd_rad for i in range(5)]
+    assert [round(math.degrees(c)) for c in chosen] == [10, 100, 170, -95, 10]
+
+
+# -- end to end --------------------------------------------------------------------------------
+
+
+def test_explore_active_skill_runs(
+    tmp_path: Path, cli: Callable[..., tuple[int, str, str]]
+) -> None:
+    code, out, err = cli(
+        "-q", "run", str(ROOT / "skills/explore_active.yaml"), "--out", str(tmp_path / "run"),
+        "--set", "tree.sequence.1.repeat.max=1",
+    )  # fmt: skip
+    assert code == 0, err
+    assert (tmp_path / "run" / "episodes" / "0000").is_dir() and "episode 0" in out
