@@ -211,7 +211,7 @@ def _info_gain(tmp_path: Path, seed: int = 0) -> tuple[InfoGainSelector, Any]:
     specs = {
         "model": {"plugin": "filters.analytical"},
         "filter": {"plugin": "filters.dual"},
-        "planner": {"plugin": "actions.info_gain"},
+        "planner": {"plugin": "actions.info_gain", "with": {"sigma_points": 100}},
     }
     ctx = build_components(specs, tmp_path, seed=seed)
     filter_ = ctx.component("filter")

@@ -23,6 +23,9 @@ SHORT_MODE: dict[str, list[str]] = yaml.safe_load((HERE / "short_mode.yaml").rea
 CASES = sorted(SKILLS.glob("*.yaml")) + sorted(HERE.glob("*.yaml"))
 CASES = [c for c in CASES if c.name != "short_mode.yaml"]
 DISPLACEMENT_TOL_M = 0.005
+VIEWS_TOL = 1
+"""The entropy planner's stop is a threshold on a float sum: the thread count of earlier tests
+(torch, open3d) can move it by one view."""
 FORCE_REL_TOL = 0.2
 
 
@@ -48,7 +51,8 @@ def _digest(summary: dict[str, Any]) -> dict[str, Any]:
 
 
 def _compare(got: dict[str, Any], want: dict[str, Any]) -> None:
-    assert (got["status"], got["views"]) == (want["status"], want["views"])
+    assert got["status"] == want["status"]
+    assert abs(got["views"] - want["views"]) <= VIEWS_TOL
     assert len(got["episodes"]) == len(want["episodes"])
     for g, w in zip(got["episodes"], want["episodes"], strict=True):
         assert (g["kind"], g["steps"]) == (w["kind"], w["steps"])

@@ -204,8 +204,6 @@ def test_inlier_probability_separates_outliers() -> None:
     assert NOISE_M / 2 < result.noise_m < 2 * NOISE_M
 
 
-@pytest.mark.xfail(strict=True, reason="multi-link recovery: the first fit spans both boxes "
-                   "and the refits do not separate them yet")
 def test_two_touching_boxes_are_two_links() -> None:
     rng = np.random.default_rng(11)
     low_box = upright([0.045, 0.045, 0.02], [0.1, 0.1], [0.0, 0.4], 0.0)
