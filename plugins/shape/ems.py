@@ -6,8 +6,10 @@ bounding box. E-step: the inlier posterior of eq. 9. M-step: a few iterations of
 nonlinear least squares on the posterior-weighted distances, then the noise variance in closed
 form. When the likelihood stops improving, similar candidates (swapped axes, the 45-degree
 dual, the sign-flipped and halved taper) are tried and the best replaces the current fit
-(the S-step). Multi-link objects: outliers of the fitted links are clustered and fitted again
-until fewer than ``outlier_threshold_points`` remain.
+(the S-step). Multi-link objects (``fit_links``): one more link is proposed by splitting the
+largest link at a seam seen from above (a gap, or a step in the top height) or on the largest
+cluster of outliers (III-B3); the links are fitted jointly (hard assignment by surface density)
+and kept only when a BIC on the surface-density likelihood prefers them.
 
 Parameter vector (14, ``PARAMETER_NAMES``): a1, a2, a3, eps1, eps2, kappa1, kappa2, x, y, yaw,
 z, pitch, roll, shear; rotation ``Rz(yaw) Ry(pitch) Rx(roll)``. On a table (the default)
@@ -70,6 +72,18 @@ _MIN_VOLUME_M3 = 1e-9
 _LOG_AREA_FLOOR = np.log(1e-8)
 _MIN_LINK_POINTS = 10
 _REFIT_ROUNDS = 2
+_PROFILE_BIN_M = 0.001
+_SPAN_PERCENTILES = (1.0, 99.0)
+_CUT_RANGE = (0.2, 0.8)
+_GAP_BINS = 5
+_GAP_SIDE_BINS = 10
+_GAP_MARGIN_BINS = 2
+_GAP_MAX_RATIO = 0.7
+_STEP_BIN_M = 0.005
+_STEP_MIN_M = 0.0025
+_TOP_PERCENTILE = 90.0
+_STEP_DIRECTIONS = 18
+_CLEAR_GAIN_NATS = 0.2
 _COARSE_FIT_POINTS = 400
 _FINE_ITERATIONS = 3
 _SWITCH_TRIALS = 2
@@ -551,39 +565,200 @@ def largest_cluster(points_m: FloatArray, radius_m: float) -> IntArray:
 
 def fit_links(points_m: FloatArray, options: EMSOptions, max_links: int,
               outlier_threshold_points: int, cluster_radius_m: float) -> list[EMSResult]:
-    """Fit superquadrics until fewer than ``outlier_threshold_points`` points are unexplained.
+    """Fit superquadrics to points [N, 3], one more at a time while the model selection of
+    :func:`_evidence_gain` prefers it (at most ``max_links``).
 
-    Each new link is fitted to the largest cluster of the points that no link explains
-    (inlier probability < 0.5); then every link is refitted to what the others leave.
+    Each step tries, in turn, to split the largest link where the view from above shows a
+    seam (:func:`_split_labels`) and to add a link on the largest cluster of unexplained points
+    (III-B3, when at least ``outlier_threshold_points``); the links of a proposal are fitted
+    jointly (:func:`_fit_jointly`) and kept only when they explain the points better.
     """
     links = [fit_superquadric(points_m, options)]
     while len(links) < max_links:
-        explained = np.max([link.inlier_probability for link in links], axis=0) >= 0.5
-        unexplained = np.flatnonzero(~explained)
-        if len(unexplained) < outlier_threshold_points:
+        proposal = _best_proposal(points_m, links, options, outlier_threshold_points,
+                                  cluster_radius_m)
+        if proposal is None:
             break
-        cluster = unexplained[largest_cluster(points_m[unexplained], cluster_radius_m)]
-        if len(cluster) < outlier_threshold_points:
-            break
-        links.append(_over_all_points(fit_superquadric(points_m[cluster], options), points_m,
-                                      options))
-        links = _refit_alternating(points_m, links, options)
+        links = proposal
     return links
 
 
-def _refit_alternating(points_m: FloatArray, links: list[EMSResult],
-                       options: EMSOptions) -> list[EMSResult]:
-    """Refit each link in turn to the points that the other links do not explain, for
-    ``_REFIT_ROUNDS`` rounds; inlier probabilities are then over all points."""
-    probabilities = [link.inlier_probability for link in links]
-    for _ in range(_REFIT_ROUNDS):
-        for index in range(len(links)):
-            others = [p for k, p in enumerate(probabilities) if k != index]
-            own = points_m[np.max(others, axis=0) < 0.5]
-            if len(own) < _MIN_LINK_POINTS:
-                continue
-            links[index] = _over_all_points(fit_superquadric(own, options), points_m, options)
-            probabilities[index] = links[index].inlier_probability
+def _best_proposal(points_m: FloatArray, links: list[EMSResult], options: EMSOptions,
+                   outlier_threshold_points: int,
+                   cluster_radius_m: float) -> list[EMSResult] | None:
+    """The first proposal of one more link whose evidence gain exceeds its threshold, both
+    fitted from the proposal's labels and refitted jointly; None when none is accepted."""
+    for labels, min_gain in _proposals(points_m, links, options, outlier_threshold_points,
+                                       cluster_radius_m):
+        threshold = min_gain * len(points_m)
+        proposal = _fit_jointly(points_m, labels, options, 1)
+        if proposal is None or _evidence_gain(points_m, links, proposal, options) <= threshold:
+            continue
+        refined = _fit_jointly(points_m, _assign(points_m, proposal), options, _REFIT_ROUNDS)
+        if refined is not None and (_evidence_gain(points_m, links, refined, options)
+                                    > threshold):
+            logger.debug("EMS: %d links accepted", len(refined))
+            return refined
+    return None
+
+
+def _proposals(points_m: FloatArray, links: list[EMSResult], options: EMSOptions,
+               outlier_threshold_points: int,
+               cluster_radius_m: float) -> list[tuple[IntArray, float]]:
+    """The models with one more link to try: point labels [N] (link index per point) and the
+    evidence gain per point that the model must exceed. A gap seen from above is itself
+    evidence of two parts, so there any BIC gain will do; a step in height or an outlier
+    cluster must explain the points clearly better (``_CLEAR_GAIN_NATS`` per point), since an
+    imperfect fit of one part leaves such structure too."""
+    labels = _assign(points_m, links)
+    largest = int(np.bincount(labels).argmax())
+    proposals = [(np.where(mask, len(links), labels), 0.0 if at_gap else _CLEAR_GAIN_NATS)
+                 for mask, at_gap in _split_masks(points_m, labels == largest)]
+    explained = np.max([link.inlier_probability for link in links], axis=0) >= 0.5
+    unexplained = np.flatnonzero(~explained)
+    if len(unexplained) >= outlier_threshold_points:
+        cluster = unexplained[largest_cluster(points_m[unexplained], cluster_radius_m)]
+        if len(cluster) >= outlier_threshold_points:
+            with_cluster = labels.copy()
+            with_cluster[cluster] = len(links)
+            proposals.append((with_cluster, _CLEAR_GAIN_NATS))
+    return proposals
+
+
+def _split_masks(points_m: FloatArray, own: FloatArray) -> list[tuple[FloatArray, bool]]:
+    """Masks [N] of the points of ``own`` (mask [N]) beyond a seam seen from above, with
+    whether it is a gap: a gap across the major axis of their footprint (:func:`_gap_cut`),
+    else the line across which the top height steps most clearly (:func:`_step_cut`, over
+    ``_STEP_DIRECTIONS`` directions); empty where there is neither."""
+    footprint = points_m[own, :2] - points_m[own, :2].mean(axis=0)
+    major = np.linalg.eigh(footprint.T @ footprint)[1][:, -1]
+    direction, cut, at_gap = major, _gap_cut(footprint @ major), True
+    if cut is None:
+        angles = np.arctan2(major[1], major[0]) + np.linspace(0, np.pi, _STEP_DIRECTIONS,
+                                                                endpoint=False)
+        directions = np.column_stack([np.cos(angles), np.sin(angles)])
+        steps = [_step_cut(footprint @ d, points_m[own, 2]) for d in directions]
+        best = int(np.argmax([gain for gain, _ in steps]))
+        if steps[best][0] <= 0:
+            return []
+        direction, cut, at_gap = directions[best], steps[best][1], False
+    mask = np.zeros(len(points_m), dtype=bool)
+    mask[np.flatnonzero(own)[footprint @ direction > cut]] = True
+    return [(mask, at_gap)]
+
+
+def _middle_bins(edges: FloatArray) -> FloatArray:
+    """Mask [B] of the positions ``edges`` [B] within ``_CUT_RANGE`` of their span."""
+    low, high = edges[0] + np.multiply(_CUT_RANGE, edges[-1] - edges[0])
+    return (edges >= low) & (edges <= high)
+
+
+def _gap_cut(along_m: FloatArray) -> float | None:
+    """Centre of the emptiest slab across the middle of the points' span (coordinates [N]
+    along the axis): a window of ``_GAP_BINS`` bins holding less than ``_GAP_MAX_RATIO``
+    of the mean density of ``_GAP_SIDE_BINS`` bins on either side (after a margin of
+    ``_GAP_MARGIN_BINS``); None where no slab is that empty."""
+    low, high = np.percentile(along_m, _SPAN_PERCENTILES)
+    counts = np.histogram(along_m, np.arange(low, high, _PROFILE_BIN_M))[0]
+    total = np.concatenate([[0], np.cumsum(counts)])
+    width, side, margin = _GAP_BINS, _GAP_SIDE_BINS, _GAP_MARGIN_BINS
+    start = np.arange(side + margin, len(counts) - width - side - margin + 1)
+    if len(start) == 0:
+        return None
+    inside = (total[start + width] - total[start]) / width
+    left = (total[start - margin] - total[start - margin - side]) / side
+    right = (total[start + width + margin + side] - total[start + width + margin]) / side
+    ratio = inside / np.maximum(0.5 * (left + right), 1.0)
+    centre = low + (start + 0.5 * width) * _PROFILE_BIN_M
+    ratio[~_middle_bins(np.concatenate([[low], centre, [high]]))[1:-1]] = np.inf
+    best = int(np.argmin(ratio))
+    return float(centre[best]) if ratio[best] < _GAP_MAX_RATIO else None
+
+
+def _step_cut(along_m: FloatArray, height_m: FloatArray) -> tuple[float, float]:
+    """The best cut on coordinates [N] between two levels of the top height (the
+    ``_TOP_PERCENTILE`` of the heights [N] per ``_STEP_BIN_M`` bin): (the drop of the mean
+    absolute deviation of the bins' top from one median to one per side, the cut). The gain
+    is 0 where the cut falls outside the middle of the span or the levels differ by less
+    than ``_STEP_MIN_M``."""
+    top, position = _top_profile(along_m, height_m)
+    cuts = [c for c in range(1, len(top))
+            if _middle_bins(np.array([position[0], position[c], position[-1]]))[1]]
+    if not cuts:
+        return 0.0, 0.0
+    cost = [np.abs(top[:c] - np.median(top[:c])).sum() + np.abs(top[c:] - np.median(top[c:])).sum()
+            for c in cuts]
+    best = cuts[int(np.argmin(cost))]
+    if abs(float(np.median(top[:best]) - np.median(top[best:]))) < _STEP_MIN_M:
+        return 0.0, 0.0
+    gain = (float(np.abs(top - np.median(top)).sum()) - min(cost)) / len(top)
+    return gain, float(position[best])
+
+
+def _top_profile(along_m: FloatArray, height_m: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The ``_TOP_PERCENTILE`` of the heights [N] in each ``_STEP_BIN_M`` bin of the
+    coordinates [N] holding at least ``_MIN_LINK_POINTS`` points, and the bins' lower edges:
+    ([B], [B])."""
+    low, high = np.percentile(along_m, _SPAN_PERCENTILES)
+    keep = (along_m >= low) & (along_m < high)
+    index = ((along_m[keep] - low) / _STEP_BIN_M).astype(np.int64)
+    order = np.lexsort((height_m[keep], index))
+    counts = np.bincount(index)
+    rank = np.cumsum(counts) - counts + (_TOP_PERCENTILE / 100 * (counts - 1)).astype(np.int64)
+    filled = np.flatnonzero(counts >= _MIN_LINK_POINTS)
+    return height_m[keep][order][rank[filled]], low + filled * _STEP_BIN_M
+
+
+def _link_log_density(points_m: FloatArray, links: list[EMSResult]) -> FloatArray:
+    """log of each link's surface density at each point [K, N]: a Gaussian of the radial
+    distance (the link's noise) over the surface, uniform on its area."""
+    distance = np.array([distance_to_surface_m(link.superquadric, points_m) for link in links])
+    var = np.array([link.noise_m**2 for link in links])[:, None]
+    params = np.array([link.params for link in links])
+    area = surface_area_m2(params[:, _SCALE], params[:, _EXPONENTS], params[:, _TAPER])
+    return -0.5 * np.log(2 * np.pi * var) - distance**2 / (2 * var) - np.log(area)[:, None]
+
+
+def _assign(points_m: FloatArray, links: list[EMSResult]) -> IntArray:
+    """Index [N] of the link of highest surface density at each point."""
+    return np.argmax(_link_log_density(points_m, links), axis=0).astype(np.int64)
+
+
+def _surface_nll(points_m: FloatArray, links: list[EMSResult], options: EMSOptions) -> float:
+    """Negative log-likelihood of points [N, 3] under the links' surface densities mixed by
+    their shares of the points, and the uniform outlier density of the bounding box."""
+    log_density = _link_log_density(points_m, links)
+    share = np.bincount(np.argmax(log_density, axis=0), minlength=len(links)) / len(points_m)
+    ratio = options.outlier_ratio
+    inlier = logsumexp(np.log(1 - ratio) + np.log(np.maximum(share, 1e-9))[:, None]
+                       + log_density, axis=0)
+    outlier = np.log(ratio) + _make_problem(points_m, options).log_outlier_density
+    return -float(np.logaddexp(inlier, outlier).sum())
+
+
+def _evidence_gain(points_m: FloatArray, links: list[EMSResult], proposal: list[EMSResult],
+                   options: EMSOptions) -> float:
+    """BIC difference (nats) in favour of ``proposal`` over ``links``: the drop of
+    :func:`_surface_nll` less half a log(N) per extra free parameter."""
+    extra = (len(proposal) - len(links)) * (len(_free_indices(options)) + 1)
+    return (_surface_nll(points_m, links, options) - _surface_nll(points_m, proposal, options)
+            - 0.5 * extra * np.log(len(points_m)))
+
+
+def _fit_jointly(points_m: FloatArray, labels: IntArray, options: EMSOptions,
+                 rounds: int) -> list[EMSResult] | None:
+    """Links fitted to the points [N, 3] of each label [N] (0 .. K-1), then for ``rounds`` - 1
+    more rounds each point is given to the link of highest surface density and the links are
+    refitted; None when a link is left with fewer than ``_MIN_LINK_POINTS``."""
+    links: list[EMSResult] = []
+    for round_index in range(rounds):
+        if round_index:
+            labels = _assign(points_m, links)
+        counts = np.bincount(labels, minlength=int(labels.max()) + 1)
+        if counts.min() < _MIN_LINK_POINTS:
+            return None
+        links = [_over_all_points(fit_superquadric(points_m[labels == k], options), points_m,
+                                  options) for k in range(len(counts))]
     return links
 
 

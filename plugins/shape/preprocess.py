@@ -11,6 +11,7 @@ import logging
 
 import numpy as np
 import open3d as o3d
+from numpy.typing import NDArray
 from pydantic import Field
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
@@ -48,24 +49,45 @@ def voxel_downsample(points_m: FloatArray, voxel_m: float) -> FloatArray:
     return np.asarray(_o3d_cloud(points_m).voxel_down_sample(voxel_m).points)
 
 
+def ransac_plane(
+    points_m: FloatArray, distance_m: float, iterations: int, rng: np.random.Generator
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """The plane [4] = (a, b, c, d), unit normal with c >= 0, through most points [N, 3]
+    (RANSAC over ``iterations`` random triples, vectorised, then a least-squares refit on the
+    inliers) and its inlier mask [N]. Deterministic for a given ``rng`` (open3d's parallel
+    RANSAC is not)."""
+    triples = points_m[rng.integers(len(points_m), size=(iterations, 3))]
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    norms = np.linalg.norm(normals, axis=1)
+    valid = norms > 1e-12
+    normals = normals[valid] / norms[valid, None]
+    offsets = -np.einsum("ij,ij->i", normals, triples[valid, 0])
+    inliers = np.abs(points_m @ normals.T + offsets) < distance_m  # [N, iterations]
+    best = int(inliers.sum(axis=0).argmax())
+    mask = inliers[:, best]
+    centre = points_m[mask].mean(axis=0)
+    normal = np.linalg.svd(points_m[mask] - centre, full_matrices=False)[2][-1]
+    normal = normal if normal[2] >= 0 else -normal
+    return np.append(normal, -normal @ centre), np.abs(
+        points_m @ normal - normal @ centre
+    ) < distance_m
+
+
 def table_plane(
-    points_m: FloatArray, distance_m: float, iterations: int, seed: int
+    points_m: FloatArray, distance_m: float, iterations: int, rng: np.random.Generator
 ) -> FloatArray | None:
     """The table: the lowest near-horizontal RANSAC plane [4] = (a, b, c, d) with
     a x + b y + c z + d = 0 and c > 0 (normal up), or None when there is none (a cloud of the
     object only). Planes with many points below them (an object's top face) are skipped."""
-    o3d.utility.random.seed(seed)
     remaining = points_m
     for _ in range(_MAX_PLANES):
         if len(remaining) < _MIN_PLANE_POINTS:
             return None
-        plane, inliers = _o3d_cloud(remaining).segment_plane(distance_m, 3, iterations)
-        plane = np.asarray(plane, dtype=np.float64) / np.linalg.norm(plane[:3])
-        plane = plane if plane[2] > 0 else -plane
+        plane, inliers = ransac_plane(remaining, distance_m, iterations, rng)
         below = np.mean(points_m @ plane[:3] + plane[3] < -2 * distance_m)
         if plane[2] >= _MIN_HORIZONTAL_NORMAL_Z and below < _MAX_SHARE_BELOW_TABLE:
             return plane
-        remaining = np.delete(remaining, inliers, axis=0)
+        remaining = remaining[~inliers]
     return None
 
 
@@ -226,8 +248,7 @@ class Open3dCloudProcessor(Component):
         config = self.config
         count = min(len(points_m), config.ransac_points)
         subset = points_m[self._rng.choice(len(points_m), size=count, replace=False)]
-        seed = int(self._rng.integers(2**31))
-        plane = table_plane(subset, config.table_distance_m, config.ransac_iterations, seed)
+        plane = table_plane(subset, config.table_distance_m, config.ransac_iterations, self._rng)
         if plane is None:
             return points_m
         self._plane = plane
