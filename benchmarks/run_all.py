@@ -17,7 +17,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import Row
 
-MODULES = ("bench_sim", "bench_cli", "bench_shape_fit", "bench_filter", "bench_actions")
+MODULES = (
+    "bench_sim",
+    "bench_cli",
+    "bench_shape_fit",
+    "bench_shape_views",
+    "bench_filter",
+    "bench_actions",
+)
 
 
 def machine() -> str:
