@@ -37,6 +37,7 @@ from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
 from vistac.plugins.shape.superquadric import (
     distance_to_surface_m,
+    inside_outside,
     radial_distance_gradient,
     radial_distance_m,
     surface_area_m2,
@@ -94,6 +95,9 @@ _LM_MIN_SCALING = 1e-12
 _DENSITY_NEIGHBOURS = 8
 _DENSITY_KEEP_RATIO = 2.0
 _AREA_NOISE_CAP_M = 0.002
+_EXCLUSION_LEVELS = (0.25, 0.5, 0.75)
+_EXCLUSION_POINTS = 300
+_EXCLUSION_WEIGHT = 1.0
 
 IntArray = NDArray[np.int64]
 
@@ -141,6 +145,7 @@ class _Problem:
     upper: FloatArray
     log_outlier_density: float
     options: EMSOptions
+    exclusion: _Problem | None = None
 
     def expand(self, free_values: FloatArray, base: FloatArray) -> FloatArray:
         """Full parameter vectors [B, 14] from free values [B, F] on top of ``base`` [14]."""
@@ -156,6 +161,17 @@ class _Problem:
         centre = full[:, [_X, _Y, _Z]]
         local = np.matmul(self.points_m - centre[:, None, :], rotation)
         return radial_distance_m(local, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER])
+
+    def inside(self, full: FloatArray) -> FloatArray:
+        """Whether each point lies inside each superquadric: full [B, 14] -> [B, N]."""
+        rotation = _rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
+        centre = full[:, [_X, _Y, _Z]]
+        local = np.matmul(self.points_m - centre[:, None, :], rotation)
+        return inside_outside(local, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER]) < 1
+
+    def penetration(self, full: FloatArray) -> FloatArray:
+        """Radial depth of the points inside each superquadric (0 outside): [B, N]."""
+        return self.distances(full) * self.inside(full)
 
     def distance_gradient(self, params: FloatArray) -> FloatArray:
         """Gradient [N, F] of each point's radial distance to the superquadric of params [14]
@@ -201,7 +217,11 @@ class _Problem:
             np.log(ratio) + self.log_outlier_density,
         ))
         inliers = self.posterior(distance, noise_var_m2).sum(axis=-1)
-        return -logsumexp(terms, axis=0).sum(axis=-1) + inliers * self.log_area(full)
+        nll = -logsumexp(terms, axis=0).sum(axis=-1) + inliers * self.log_area(full)
+        if self.exclusion is not None:
+            depth = self.exclusion.penetration(full)
+            nll = nll + _EXCLUSION_WEIGHT * (depth**2).sum(axis=-1) / (2 * noise_var_m2)
+        return nll
 
 
 def _rotation_zyx(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:
@@ -313,11 +333,18 @@ def _free_indices(options: EMSOptions) -> IntArray:
     return np.array([i for i in range(len(PARAMETER_NAMES)) if i not in fixed], dtype=np.int64)
 
 
-def _make_problem(points_m: FloatArray, options: EMSOptions) -> _Problem:
+def _make_problem(points_m: FloatArray, options: EMSOptions,
+                  excluded_m: FloatArray | None = None) -> _Problem:
+    """The problem of fitting points [N, 3]; with ``excluded_m`` [M, 3], points that the
+    superquadric must not enclose (the hidden volume of other links): their radial depth
+    inside is penalised."""
     lower, upper = _bounds(points_m)
     volume_m3 = max(float(np.prod(np.ptp(points_m, axis=0))), _MIN_VOLUME_M3)
-    return _Problem(points_m, _free_indices(options), options.on_table, lower, upper,
-                    -np.log(volume_m3), options)
+    free = _free_indices(options)
+    exclusion = (None if excluded_m is None or len(excluded_m) == 0 else
+                 _Problem(excluded_m, free, options.on_table, lower, upper, 0.0, options))
+    return _Problem(points_m, free, options.on_table, lower, upper, -np.log(volume_m3),
+                    options, exclusion)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -371,7 +398,10 @@ class _Residuals:
     def batch(self, free_values: FloatArray) -> FloatArray:
         full = self.problem.expand(free_values, self.base)
         distance = self.sqrt_w * self.problem.distances(full)
-        return np.hstack([distance, self.area_residual(full)[:, None]])
+        out = [distance, self.area_residual(full)[:, None]]
+        if self.problem.exclusion is not None:
+            out.append(np.sqrt(_EXCLUSION_WEIGHT) * self.problem.exclusion.penetration(full))
+        return np.hstack(out)
 
     def __call__(self, x: FloatArray) -> FloatArray:
         return self.batch(x[None, :])[0]
@@ -382,7 +412,13 @@ class _Residuals:
         step = _FD_STEP * np.maximum(np.abs(x), _FD_FLOOR)
         area = self.area_residual(self.problem.expand(np.vstack([x, x + np.diag(step)]),
                                                       self.base))
-        return np.vstack([self.sqrt_w[:, None] * grad, (area[1:] - area[0]) / step])
+        rows = [self.sqrt_w[:, None] * grad, (area[1:] - area[0]) / step]
+        exclusion = self.problem.exclusion
+        if exclusion is not None:
+            inside = exclusion.inside(full)[0]
+            rows.append(np.sqrt(_EXCLUSION_WEIGHT) * inside[:, None]
+                        * exclusion.distance_gradient(full[0]))
+        return np.vstack(rows)
 
     def area_residual(self, full: FloatArray) -> FloatArray:
         """sqrt(gain (log A - floor)) per superquadric: full [B, 14] -> [B]."""
@@ -527,7 +563,8 @@ def _canonical(params: FloatArray, options: EMSOptions) -> FloatArray:
     return out
 
 
-def fit_superquadric(points_m: FloatArray, options: EMSOptions) -> EMSResult:
+def fit_superquadric(points_m: FloatArray, options: EMSOptions,
+                     excluded_m: FloatArray | None = None) -> EMSResult:
     """Fit one (tapered) superquadric to points [N, 3] (N >= 10, finite) by EMS.
 
     EM with switching runs on a fixed random subset of ``_COARSE_FIT_POINTS``, then at most
@@ -537,10 +574,12 @@ def fit_superquadric(points_m: FloatArray, options: EMSOptions) -> EMSResult:
     order = np.random.default_rng(0).permutation(len(points_m))
     subset = points_m[order[: options.max_fit_points]]
     coarse = subset[: min(_COARSE_FIT_POINTS, len(subset))]
-    state = _run_ems(_make_problem(coarse, options), _initial_params(subset, options.on_table),
-                     options.max_iterations, options.max_switches)
+    state = _run_ems(_make_problem(coarse, options, excluded_m),
+                     _initial_params(subset, options.on_table), options.max_iterations,
+                     options.max_switches)
     if len(subset) > len(coarse):
-        state = _run_ems(_make_problem(subset, options), state.params, _FINE_ITERATIONS, 0)
+        state = _run_ems(_make_problem(subset, options, excluded_m), state.params,
+                         _FINE_ITERATIONS, 0)
     params = _canonical(state.params, options)
     problem = _make_problem(points_m, options)
     weights = problem.posterior(problem.distances(params[None])[0], state.noise_var_m2)
@@ -757,9 +796,24 @@ def _fit_jointly(points_m: FloatArray, labels: IntArray, options: EMSOptions,
         counts = np.bincount(labels, minlength=int(labels.max()) + 1)
         if counts.min() < _MIN_LINK_POINTS:
             return None
-        links = [_over_all_points(fit_superquadric(points_m[labels == k], options), points_m,
-                                  options) for k in range(len(counts))]
+        links = [_over_all_points(fit_superquadric(points_m[labels == k], options,
+                                                   _hidden_volume(points_m[labels != k], options)),
+                                  points_m, options) for k in range(len(counts))]
     return links
+
+
+def _hidden_volume(points_m: FloatArray, options: EMSOptions) -> FloatArray | None:
+    """Points [M, 3] inside the other links, which a link must not enclose: on a table, the
+    columns below (a subset of) their dense points at ``_EXCLUSION_LEVELS`` of their height;
+    None off the table or with too few points."""
+    if not options.on_table or len(points_m) < _MIN_LINK_POINTS:
+        return None
+    dense = _dense_points(points_m)
+    dense = dense[np.random.default_rng(0).permutation(len(dense))[:_EXCLUSION_POINTS]]
+    levels = np.asarray(_EXCLUSION_LEVELS)
+    columns = np.repeat(dense[None, :, :], len(levels), axis=0)
+    columns[:, :, 2] *= levels[:, None]
+    return columns.reshape(-1, 3)
 
 
 def _over_all_points(link: EMSResult, points_m: FloatArray, options: EMSOptions) -> EMSResult:
