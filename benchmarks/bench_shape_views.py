@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from common import Row
 from vistac.plugins.shape.evaluation import shape_errors
+from vistac.plugins.shape.views import UniformViews, uniform_view
 from vistac.testing import build_components
 from vistac.types import PointCloud
 
@@ -77,10 +78,7 @@ def perceive(obj: Path, planner: str, out: Path, seed: int = 0) -> dict[str, Any
 
 def _fallback_view(taken: int) -> Any:
     """After the active planner stops, keep looking uniformly to see where it would go."""
-    from vistac.types import Viewpoint
-
-    azimuth = -np.pi / 2 + 2 * np.pi * taken / MAX_VIEWS
-    return Viewpoint.on_hemisphere(np.array([0.0, 0.45, 0.03]), 0.5, azimuth, np.radians(50))
+    return uniform_view(None, taken, MAX_VIEWS, UniformViews.Config())
 
 
 def _chamfer_m(shape: Any, truth: dict[str, Any]) -> float:

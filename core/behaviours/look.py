@@ -48,6 +48,7 @@ class Look(SkillBehaviour):
 
     def initialise(self) -> None:
         self.clouds: list[PointCloud] = []
+        self.merged: PointCloud | None = None
         self.object_cloud: PointCloud | None = None
         self.shape_estimate: ShapeEstimate | None = None
         self.busy_s = 0.0
@@ -76,20 +77,19 @@ class Look(SkillBehaviour):
         rgbd = camera.capture()
         self.run.recorder.save_view(rgbd)
         cloud = rgbd.point_cloud()
-        merged = PointCloud.merge(self.clouds) if self.clouds else None
         if processor is not None:
-            cloud = processor.register(cloud, merged)
+            cloud = processor.register(cloud, self.merged)
         self.clouds.append(cloud)
-        merged = PointCloud.merge(self.clouds)
-        self.object_cloud = processor.segment(merged) if processor is not None else merged
+        self.merged = PointCloud.merge(self.clouds)
+        self.object_cloud = processor.segment(self.merged) if processor is not None else self.merged
         log.info(
             "view %d: %d points from (%.2f, %.2f, %.2f)", len(self.clouds), len(cloud), *view.eye_m
         )
 
     def _finish(self) -> Status:
-        if not self.clouds or self.object_cloud is None or len(self.object_cloud) == 0:
+        merged = self.merged
+        if merged is None or self.object_cloud is None or len(self.object_cloud) == 0:
             raise DataError("look: the camera returned no points; check that the object is in view")
-        merged = PointCloud.merge(self.clouds)
         self.run.recorder.save_cloud(merged)
         self.write("cloud", merged)
         self.write("views", len(self.clouds))

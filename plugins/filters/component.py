@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
 from vistac.errors import ConfigError, DataError
 from vistac.plugins.actions.executor import CartesianExecutor
+from vistac.plugins.filters.data import relative_poses
 from vistac.plugins.filters.dual import Belief, DualFilter, ObservationModel
 from vistac.plugins.filters.models import load_checkpoint
 from vistac.plugins.filters.observation import (
@@ -56,13 +57,20 @@ def link_boxes(shape: ShapeEstimate) -> tuple[FloatArray, FloatArray]:
     return np.asarray(shape.initial_poses, dtype=np.float64), sizes
 
 
-def relative_poses(poses: FloatArray) -> FloatArray:
-    """Each pose [L, 3] relative to the first, in the first's frame: [L, 3]."""
-    c, s = np.cos(poses[0, 2]), np.sin(poses[0, 2])
-    rel = poses[:, :2] - poses[0, :2]
-    return np.column_stack(
-        [c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], poses[:, 2] - poses[0, 2]]
+def prior_belief(pose_twist: FloatArray, prior: Prior, layout: StateLayout) -> Belief:
+    """The initial belief: link poses and twists [L, 6] with the prior's position, angle and
+    velocity std, the prior's parameter means and std, no correlations."""
+    pose_std = [prior.position_m] * 2 + [prior.angle_rad] + [prior.velocity_mps] * 3
+    link_mean = [prior.mass_kg[0], prior.friction[0], prior.com_m[0], prior.com_m[0]]
+    link_std = [prior.mass_kg[1], prior.friction[1], prior.com_m[1], prior.com_m[1]]
+    links, joints = layout.n_links, layout.n_joints
+    mean = np.concatenate(
+        [np.ravel(pose_twist), np.tile(link_mean, links), [prior.joint_friction_nm[0]] * joints]
     )
+    std = np.concatenate(
+        [np.tile(pose_std, links), np.tile(link_std, links), [prior.joint_friction_nm[1]] * joints]
+    )
+    return Belief(torch.as_tensor(mean, dtype=DTYPE), torch.diag(torch.as_tensor(std**2)))
 
 
 def nearest_link(points_m: FloatArray, poses: FloatArray, sizes: FloatArray) -> FloatArray:
@@ -140,10 +148,8 @@ class DualFilterComponent(Component):
                 f"the process model handles {self.model.n_links} link(s) but the object has "
                 f"{self.layout.n_links}; use filters.gnn or a model trained for this many links"
             )
-        mean, std = self._prior_mean_std(poses)
-        self.belief = Belief(
-            torch.as_tensor(mean, dtype=DTYPE), torch.diag(torch.as_tensor(std, dtype=DTYPE) ** 2)
-        )
+        pose_twist = np.column_stack([poses, np.zeros_like(poses)])
+        self.belief = prior_belief(pose_twist, self.config.prior, self.layout)
         self.prior = self.belief
         return self._public()
 
@@ -260,20 +266,6 @@ class DualFilterComponent(Component):
         cov[:, params] = 0.0
         cov[params, params] = self.prior.cov[params, params]
         self.belief = Belief(mean, cov)
-
-    def _prior_mean_std(self, poses: FloatArray) -> tuple[FloatArray, FloatArray]:
-        assert self.layout is not None
-        prior, links = self.config.prior, len(poses)
-        pose_mean = np.concatenate([np.concatenate([p, np.zeros(3)]) for p in poses])
-        pose_std = np.tile(
-            [prior.position_m, prior.position_m, prior.angle_rad] + [prior.velocity_mps] * 3, links
-        )
-        link_mean = np.tile([prior.mass_kg[0], prior.friction[0], *[prior.com_m[0]] * 2], links)
-        link_std = np.tile([prior.mass_kg[1], prior.friction[1], *[prior.com_m[1]] * 2], links)
-        joints = self.layout.n_joints
-        mean = np.concatenate([pose_mean, link_mean, [prior.joint_friction_nm[0]] * joints])
-        std = np.concatenate([pose_std, link_std, [prior.joint_friction_nm[1]] * joints])
-        return mean, std
 
     def _inflate_pose(self) -> None:
         """Between interactions the gripper leaves and comes back: widen the pose belief."""

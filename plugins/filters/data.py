@@ -141,14 +141,16 @@ def link_geometry(spec: ObjectSpec) -> tuple[FloatArray, FloatArray]:
     """(link_size_m [L, 2] half extents of each footprint, link_offset [L, 3] initial pose
     of each link relative to link 0, in link 0's frame)."""
     size = np.array([np.abs(link.polygon()).max(axis=0) for link in spec.links])
-    frames = link_frames(spec)
-    theta0 = frames[0, 2]
-    c, s = np.cos(theta0), np.sin(theta0)
-    rel = frames[:, :2] - frames[0, :2]
-    offset = np.column_stack(
-        [c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], frames[:, 2] - theta0]
+    return size, relative_poses(link_frames(spec))
+
+
+def relative_poses(poses: FloatArray) -> FloatArray:
+    """Each planar pose [L, 3] relative to the first, in the first's frame: [L, 3]."""
+    c, s = np.cos(poses[0, 2]), np.sin(poses[0, 2])
+    rel = poses[:, :2] - poses[0, :2]
+    return np.column_stack(
+        [c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], poses[:, 2] - poses[0, 2]]
     )
-    return size, offset
 
 
 def true_states(trajectory: Trajectory, layout: StateLayout) -> Tensor:

@@ -263,24 +263,10 @@ def _unbatch(inputs: Any) -> Any:
 
 
 def _initial_belief(truth: Tensor, layout: StateLayout, prior: Any) -> Belief:
-    """The belief a run starts from: true pose, prior parameters, prior covariance."""
-    mean = truth.clone()
-    std = torch.ones(layout.size, dtype=DTYPE)
-    per_pose = [prior.position_m] * 2 + [prior.angle_rad] + [prior.velocity_mps] * 3
-    std[layout.pose_slice] = torch.tensor(per_pose, dtype=DTYPE).repeat(layout.n_links)
-    link_mean = [prior.mass_kg[0], prior.friction[0], prior.com_m[0], prior.com_m[0]]
-    link_std = [prior.mass_kg[1], prior.friction[1], prior.com_m[1], prior.com_m[1]]
-    start = layout.n_pose
-    mean[start : start + 4 * layout.n_links] = torch.tensor(link_mean, dtype=DTYPE).repeat(
-        layout.n_links
-    )
-    std[start : start + 4 * layout.n_links] = torch.tensor(link_std, dtype=DTYPE).repeat(
-        layout.n_links
-    )
-    if layout.n_joints:
-        mean[-layout.n_joints :] = prior.joint_friction_nm[0]
-        std[-layout.n_joints :] = prior.joint_friction_nm[1]
-    return Belief(mean, torch.diag(std**2))
+    """The belief a run starts from: the true pose and twist, the prior parameters."""
+    from vistac.plugins.filters.component import prior_belief
+
+    return prior_belief(layout.link_pose(truth).numpy(), prior, layout)
 
 
 # ---------------------------------------------------------------------------------------------

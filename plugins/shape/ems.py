@@ -157,14 +157,14 @@ class _Problem:
 
     def distances(self, full: FloatArray) -> FloatArray:
         """Radial distance of every point to each superquadric: full [B, 14] -> [B, N]."""
-        rotation = _rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
+        rotation = rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
         centre = full[:, [_X, _Y, _Z]]
         local = np.matmul(self.points_m - centre[:, None, :], rotation)
         return radial_distance_m(local, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER])
 
     def inside(self, full: FloatArray) -> FloatArray:
         """Whether each point lies inside each superquadric: full [B, 14] -> [B, N]."""
-        rotation = _rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
+        rotation = rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
         centre = full[:, [_X, _Y, _Z]]
         local = np.matmul(self.points_m - centre[:, None, :], rotation)
         return inside_outside(local, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER]) < 1
@@ -176,7 +176,7 @@ class _Problem:
     def distance_gradient(self, params: FloatArray) -> FloatArray:
         """Gradient [N, F] of each point's radial distance to the superquadric of params [14]
         with respect to the free parameters (on a table, a3's column includes z = a3)."""
-        rotation = _rotation_zyx(params[None, _YAW], params[None, _PITCH],
+        rotation = rotation_zyx(params[None, _YAW], params[None, _PITCH],
                                  params[None, _ROLL])[0]
         offset = self.points_m - params[[_X, _Y, _Z]]
         _, grad = radial_distance_gradient(offset @ rotation, params[_SCALE],
@@ -224,7 +224,7 @@ class _Problem:
         return nll
 
 
-def _rotation_zyx(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:
+def rotation_zyx(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:
     """Rz(yaw) Ry(pitch) Rx(roll) for angle arrays [B]. Returns [B, 3, 3]."""
     cy, sy, cp, sp, cr, sr = (np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch),
                               np.cos(roll), np.sin(roll))
@@ -238,13 +238,13 @@ def _rotation_zyx(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> Float
 def _rotation_derivatives(params: FloatArray, rotation: FloatArray) -> list[FloatArray]:
     """d R / d (yaw, pitch, roll) [3 x (3, 3)] of R = Rz Ry Rx (``rotation``) at params [14]."""
     zero = np.zeros(1)
-    yaw_part = _rotation_zyx(params[None, _YAW], zero, zero)[0]
-    tilt = _rotation_zyx(zero, params[None, _PITCH], params[None, _ROLL])[0]
+    yaw_part = rotation_zyx(params[None, _YAW], zero, zero)[0]
+    tilt = rotation_zyx(zero, params[None, _PITCH], params[None, _ROLL])[0]
     return [_GENERATOR_Z @ rotation, yaw_part @ _GENERATOR_Y @ tilt, rotation @ _GENERATOR_X]
 
 
 def _euler_zyx(rotation: FloatArray) -> tuple[float, float, float]:
-    """(yaw, pitch, roll) of a rotation matrix [3, 3] (inverse of :func:`_rotation_zyx`)."""
+    """(yaw, pitch, roll) of a rotation matrix [3, 3] (inverse of :func:`rotation_zyx`)."""
     pitch = float(np.arctan2(-rotation[2, 0], np.hypot(rotation[0, 0], rotation[1, 0])))
     yaw = float(np.arctan2(rotation[1, 0], rotation[0, 0]))
     roll = float(np.arctan2(rotation[2, 1], rotation[2, 2]))
@@ -254,7 +254,7 @@ def _euler_zyx(rotation: FloatArray) -> tuple[float, float, float]:
 def _pose(params: FloatArray) -> FloatArray:
     """world_from_sq [4, 4] of a parameter vector [14]."""
     pose = np.eye(4)
-    pose[:3, :3] = _rotation_zyx(params[None, _YAW], params[None, _PITCH], params[None, _ROLL])[0]
+    pose[:3, :3] = rotation_zyx(params[None, _YAW], params[None, _PITCH], params[None, _ROLL])[0]
     pose[:3, 3] = params[[_X, _Y, _Z]]
     return pose
 
@@ -276,7 +276,7 @@ def _principal_frame(points_m: FloatArray, on_table: bool) -> FloatArray:
     if on_table:
         _, vectors = np.linalg.eigh(centred[:, :2].T @ centred[:, :2])
         yaw = float(np.arctan2(vectors[1, 1], vectors[0, 1])) - np.pi / 2
-        return _rotation_zyx(np.array([yaw]), np.zeros(1), np.zeros(1))[0]
+        return rotation_zyx(np.array([yaw]), np.zeros(1), np.zeros(1))[0]
     _, vectors = np.linalg.eigh(centred.T @ centred)
     frame = vectors[:, [1, 2, 0]].copy()
     frame[:, 2] = np.cross(frame[:, 0], frame[:, 1])

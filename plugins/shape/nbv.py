@@ -40,7 +40,7 @@ from pydantic import Field, model_validator
 from scipy.spatial import cKDTree
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
-from vistac.plugins.shape.ems import PARAMETER_NAMES
+from vistac.plugins.shape.ems import PARAMETER_NAMES, rotation_zyx
 from vistac.plugins.shape.superquadric import (
     log_inside_outside,
     radial_surface_points,
@@ -48,7 +48,7 @@ from vistac.plugins.shape.superquadric import (
     sample_surface,
     to_superquadric_frame,
 )
-from vistac.plugins.shape.views import object_centroid
+from vistac.plugins.shape.views import object_centroid, uniform_view
 from vistac.types import (
     CameraIntrinsics,
     FloatArray,
@@ -230,16 +230,7 @@ class EntropyNBV(Component):
 
     def _fallback_view(self, cloud: PointCloud | None, views_taken: int) -> Viewpoint:
         """The view of ``shape.uniform_views`` number ``views_taken`` (of ``max_views``)."""
-        target = object_centroid(
-            cloud, np.array(self.config.target_m), self.config.table_clearance_m
-        )
-        azimuth = (
-            np.radians(self.config.start_azimuth_deg)
-            + 2 * np.pi * views_taken / self.config.max_views
-        )
-        return Viewpoint.on_hemisphere(
-            target, self.config.radius_m, azimuth, np.radians(self.config.elevation_deg)
-        )
+        return uniform_view(cloud, views_taken, self.config.max_views, self.config)
 
     def _best_view(self, cloud: PointCloud | None, shape: ShapeEstimate) -> Viewpoint | None:
         """The candidate with the largest view entropy, or None when it is below threshold."""
@@ -370,7 +361,7 @@ def parameter_displacements(sq: Superquadric, local_m: FloatArray, std: FloatArr
     batch_m = np.broadcast_to(local_m, (len(perturbed), *local_m.shape))
     local = radial_surface_points(batch_m, scale_m, exponents, taper)
     yaw, pitch, roll = column[_columns(_ANGLE_NAMES)]
-    rotation = _rotation_zyx(yaw, pitch, roll)
+    rotation = rotation_zyx(yaw, pitch, roll)
     translation_m = column[_columns(_POSITION_NAMES)].T
     world = np.matmul(local, np.swapaxes(rotation, 1, 2)) + translation_m[:, None, :]
     count = len(std)
@@ -406,17 +397,6 @@ def _clip_parameters(params: FloatArray) -> FloatArray:
     for names, (low, high) in _PARAMETER_RANGES.items():
         clipped[:, _columns(names)] = np.clip(clipped[:, _columns(names)], low, high)
     return clipped
-
-
-def _rotation_zyx(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:
-    """Rz(yaw) Ry(pitch) Rx(roll) for angles [B]. Returns [B, 3, 3]."""
-    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
-    cr, sr = np.cos(roll), np.sin(roll)
-    return np.stack([
-        np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], axis=-1),
-        np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], axis=-1),
-        np.stack([-sp, cp * sr, cp * cr], axis=-1),
-    ], axis=-2)  # fmt: skip
 
 
 def surface_normals(sq: Superquadric, local_m: FloatArray) -> FloatArray:

@@ -6,6 +6,8 @@ cloud is available, then the centroid of the points above the table.
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 from pydantic import Field
 from vistac.component import Component, ComponentConfig, ComponentContext
@@ -20,6 +22,28 @@ def object_centroid(
         return fallback_m
     above = cloud.points_m[cloud.points_m[:, 2] > clearance_m]
     return above.mean(axis=0) if len(above) else fallback_m
+
+
+class UniformViewSettings(Protocol):
+    """The configuration fields :func:`uniform_view` reads."""
+
+    radius_m: float
+    elevation_deg: float
+    start_azimuth_deg: float
+    target_m: tuple[float, float, float]
+    table_clearance_m: float
+
+
+def uniform_view(
+    cloud: PointCloud | None, index: int, count: int, config: UniformViewSettings
+) -> Viewpoint:
+    """View ``index`` of ``count`` evenly spaced in azimuth from ``start_azimuth_deg`` at
+    ``elevation_deg``, aimed at the object (``target_m`` before any cloud)."""
+    target = object_centroid(cloud, np.array(config.target_m), config.table_clearance_m)
+    azimuth = np.radians(config.start_azimuth_deg) + 2 * np.pi * index / count
+    return Viewpoint.on_hemisphere(
+        target, config.radius_m, azimuth, np.radians(config.elevation_deg)
+    )
 
 
 class UniformViews(Component):
@@ -44,12 +68,4 @@ class UniformViews(Component):
     ) -> Viewpoint | None:
         if views_taken >= self.config.views:
             return None
-        target = object_centroid(
-            cloud, np.array(self.config.target_m), self.config.table_clearance_m
-        )
-        azimuth = (
-            np.radians(self.config.start_azimuth_deg) + 2 * np.pi * views_taken / self.config.views
-        )
-        return Viewpoint.on_hemisphere(
-            target, self.config.radius_m, azimuth, np.radians(self.config.elevation_deg)
-        )
+        return uniform_view(cloud, views_taken, self.config.views, self.config)
