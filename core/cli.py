@@ -87,6 +87,8 @@ def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
         if "peak_tactile_force_n" in episode:
             text += f", peak force {episode['peak_tactile_force_n']:.2f} N"
         lines.append(text)
+    if summary.get("shape"):
+        lines += _shape_lines(summary["shape"], summary.get("shape_errors") or {})
     if summary.get("belief"):
         lines.append(
             _belief_table(
@@ -95,6 +97,23 @@ def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
         )
     lines.append(f"  data: {out_dir}/ (run.json, summary.json, episodes/, views/)")
     return "\n".join(lines)
+
+
+def _shape_lines(shape: dict[str, Any], errors: dict[str, Any]) -> list[str]:
+    """One line per fitted link: semi-axes, exponents, pose; then the Chamfer distances."""
+    lines = [f"  shape: {len(shape['links'])} link(s) in {shape['time_s']:.2f} s"]
+    for index, link in enumerate(shape["links"]):
+        a1, a2, a3 = (1e3 * v for v in link["superquadric"]["scale_m"])
+        eps1, eps2 = link["superquadric"]["exponents"]
+        x, y, theta = link["initial_pose"]
+        lines.append(
+            f"    link {index}: semi-axes {a1:.1f} x {a2:.1f} x {a3:.1f} mm, "
+            f"eps ({eps1:.2f}, {eps2:.2f}), at ({x:.3f}, {y:.3f}) m, {theta * 57.2958:.0f} deg"
+        )
+    if errors.get("chamfer_m"):
+        values = ", ".join("-" if c is None else f"{1e3 * c:.2f}" for c in errors["chamfer_m"])
+        lines.append(f"    Chamfer distance to the true links: {values} mm")
+    return lines
 
 
 def _belief_table(belief: dict[str, dict[str, float]], truth: dict[str, float]) -> str:

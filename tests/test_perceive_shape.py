@@ -17,7 +17,7 @@ MAX_CHAMFER_M = 0.0015
 
 def perceive(tmp_path: Path, obj: str, *overrides: str) -> dict[str, object]:
     out = tmp_path / obj
-    args = ["-q", "run", str(SKILLS / "perceive_shape.yaml"), "--out", str(out),
+    args = ["run", str(SKILLS / "perceive_shape.yaml"), "--out", str(out),
             "--set", f"components.world.with.object=objects/{obj}.yaml"]  # fmt: skip
     for override in overrides:
         args += ["--set", override]
@@ -58,3 +58,12 @@ def test_an_empty_scene_is_a_clear_error(
                  "--set", "components.views.with.elevation_deg=5"])  # fmt: skip
     assert code == 1
     assert "object" in capsys.readouterr().err
+
+
+def test_the_run_prints_the_fitted_links_and_their_chamfer_distance(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    perceive(tmp_path, "rect2", "components.views={plugin: shape.uniform_views}")
+    out = capsys.readouterr().out
+    assert "shape: 1 link(s)" in out
+    assert "link 0: semi-axes" in out and "Chamfer distance to the true links:" in out
