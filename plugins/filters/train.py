@@ -32,7 +32,8 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 from vistac.errors import ConfigError, DataError
-from vistac.objects import load_object, write_configurations
+from vistac.objects import link_frames, load_object, write_configurations
+from vistac.plugins.filters.component import Prior, prior_belief
 from vistac.plugins.filters.data import (
     Trajectory,
     describe,
@@ -43,13 +44,14 @@ from vistac.plugins.filters.data import (
     true_states,
 )
 from vistac.plugins.filters.dual import Belief, DualFilter
+from vistac.plugins.filters.models import sidecar_path
 from vistac.plugins.filters.observation import (
     DepthProjector,
     ObsNoiseNet,
     ProjectionObservationModel,
     observation_vector,
 )
-from vistac.plugins.filters.state import DTYPE, StateLayout
+from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
 
 log = logging.getLogger(__name__)
 
@@ -195,8 +197,6 @@ def _projector(window: Trajectory, rng: np.random.Generator, splat_px: int = 1) 
     if window.depth_m is None or window.camera_pose is None or window.intrinsics is None:
         raise DataError(f"{window.source}: no depth frames; collect with record_depth: true")
     points, owners = object_cloud(window.spec, rng)
-    from vistac.objects import link_frames
-
     height, width = window.depth_m.shape[1:]
     return DepthProjector(
         points, owners, link_frames(window.spec), window.intrinsics, window.camera_pose[0],
@@ -232,8 +232,6 @@ def filter_loss(
     rng: np.random.Generator,
 ) -> Tensor:
     """NLL + MSE of the true state under the dual filter's belief along one window."""
-    from vistac.plugins.filters.component import Prior
-
     layout = StateLayout(window.n_links)
     truth = true_states(window, layout)
     projector = _projector(window, rng)
@@ -257,15 +255,11 @@ def filter_loss(
 
 
 def _unbatch(inputs: Any) -> Any:
-    from vistac.plugins.filters.state import ProcessInput
-
     return ProcessInput(*(getattr(inputs, f)[0] for f in inputs.__dataclass_fields__))
 
 
 def _initial_belief(truth: Tensor, layout: StateLayout, prior: Any) -> Belief:
     """The belief a run starts from: the true pose and twist, the prior parameters."""
-    from vistac.plugins.filters.component import prior_belief
-
     return prior_belief(layout.link_pose(truth).numpy(), prior, layout)
 
 
@@ -461,8 +455,6 @@ def _train_filter(
 
 
 def _save_noise(noise_net: ObsNoiseNet, path: Path) -> None:
-    from vistac.plugins.filters.models import sidecar_path
-
     torch.save(noise_net.state_dict(), path)
     sidecar = {"model": "filters.dual", "architecture": {}}
     sidecar_path(path).write_text(json.dumps(sidecar, indent=2), encoding="utf-8")
