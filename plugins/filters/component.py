@@ -10,8 +10,11 @@ The belief is carried from one interaction to the next.
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
@@ -73,6 +76,45 @@ def prior_belief(pose_twist: FloatArray, prior: Prior, layout: StateLayout) -> B
     return Belief(torch.as_tensor(mean, dtype=DTYPE), torch.diag(torch.as_tensor(std**2)))
 
 
+def load_summary_belief(path: Path) -> dict[str, dict[str, float]]:
+    """The ``belief`` entry of a run's summary.json: name -> {"mean", "std"}."""
+    try:
+        summary = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as error:
+        raise ConfigError(
+            f"prior_from: cannot read {path}: {error}; give the summary.json of an earlier "
+            "run on this object, e.g. `vistac run skills/explore_push.yaml --out DIR`"
+        ) from None
+    belief = summary.get("belief") if isinstance(summary, dict) else None
+    if not isinstance(belief, dict) or not belief:
+        raise ConfigError(
+            f"prior_from: {path} has no belief; use the summary.json of a run that "
+            "updated a belief (explore_push or explore_pull)"
+        )
+    return belief
+
+
+def known_parameters(
+    belief: Belief, layout: StateLayout, known: dict[str, dict[str, float]], source: Path
+) -> Belief:
+    """``belief`` with every parameter's mean and std taken from ``known`` (uncorrelated)."""
+    names = layout.names[layout.parameter_slice]
+    missing = [name for name in names if name not in known]
+    if missing:
+        raise ConfigError(
+            f"prior_from: {source} has no {', '.join(missing)}; it is from an object with "
+            f"another number of links than the {layout.n_links} seen now"
+        )
+    mean, cov = belief.mean.clone(), belief.cov.clone()
+    for name in names:
+        index = layout.index(name)
+        mean[index] = float(known[name]["mean"])
+        cov[index, :] = 0.0
+        cov[:, index] = 0.0
+        cov[index, index] = max(float(known[name]["std"]), 1e-6) ** 2
+    return Belief(mean, cov)
+
+
 def nearest_link(points_m: FloatArray, poses: FloatArray, sizes: FloatArray) -> FloatArray:
     """Index [N] of the link whose footprint box (size-normalised) is nearest to each point."""
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
@@ -81,6 +123,25 @@ def nearest_link(points_m: FloatArray, poses: FloatArray, sizes: FloatArray) -> 
     local_x, local_y = c * dx + s * dy, -s * dx + c * dy
     score = np.maximum(np.abs(local_x) / sizes[:, 0], np.abs(local_y) / sizes[:, 1])
     return np.asarray(score.argmin(axis=1))
+
+
+@dataclass(frozen=True)
+class _ActionMotion:
+    """The gripper moving along each of B actions: start [B, 2] (m), yaw [B] (rad),
+    velocity [B, 2] (m/s), and the ProcessInput fields that stay fixed."""
+
+    start_xy: FloatArray
+    yaw_rad: FloatArray
+    velocity_mps: FloatArray
+    fixed: dict[str, torch.Tensor]
+
+    def inputs(self, elapsed_s: float) -> ProcessInput:
+        """The process input ``elapsed_s`` into the actions."""
+        xy = self.start_xy + self.velocity_mps * elapsed_s
+        tcp = np.column_stack(
+            [xy, self.yaw_rad, self.velocity_mps, np.zeros(len(self.yaw_rad))]
+        )
+        return ProcessInput(tcp=torch.as_tensor(tcp, dtype=DTYPE), **self.fixed)
 
 
 class DualFilterComponent(Component):
@@ -95,6 +156,11 @@ class DualFilterComponent(Component):
             None, description="ObsNoiseNet state dict from `vistac train`; None: defaults"
         )
         prior: Prior = Prior()
+        prior_from: SkillPath | None = Field(
+            None,
+            description="summary.json of an earlier run on this object: its belief's parameter "
+            "means and std replace the prior (an object whose parameters are known)",
+        )
         depth_size_px: int = Field(64, gt=0, description="side of the observed depth image")
         splat_px: int = Field(1, ge=1, description="pixels each projected point covers")
         min_ess_fraction: float = Field(
@@ -150,6 +216,9 @@ class DualFilterComponent(Component):
             )
         pose_twist = np.column_stack([poses, np.zeros_like(poses)])
         self.belief = prior_belief(pose_twist, self.config.prior, self.layout)
+        if self.config.prior_from is not None:
+            known = load_summary_belief(self.config.prior_from)
+            self.belief = known_parameters(self.belief, self.layout, known, self.config.prior_from)
         self.prior = self.belief
         return self._public()
 
@@ -171,8 +240,14 @@ class DualFilterComponent(Component):
                 )
                 if not self.config.estimate_parameters:
                     self._restore_prior_parameters()
+                visual, tactile = filter_.last_log_likelihood.tolist()
                 self.history.append(
-                    {"episode": episode.index, "time_s": step.time_s, **self._public().as_dict()}
+                    {
+                        "episode": episode.index,
+                        "time_s": step.time_s,
+                        "log_likelihood": {"visual": visual, "tactile": tactile},
+                        **self._public().as_dict(),
+                    }
                 )
         return self._public()
 
@@ -202,27 +277,8 @@ class DualFilterComponent(Component):
         self._inflate_pose()
         start, self.belief = self.belief, current
         batch = len(actions)
-        points = np.array([action_point(action) for action in actions])
-        headings = np.array([[np.cos(a.pd_rad), np.sin(a.pd_rad)] for a in actions])
-        executor_config = getattr(self.ctx.find("executor"), "config", None)
-        default_m = CartesianExecutor.Config().pusher_offset_m
-        offset_m = float(getattr(executor_config, "pusher_offset_m", default_m))
-        is_pull = np.array([isinstance(action, Pull) for action in actions])
-        tcp_xy = points - np.where(is_pull, 0.0, offset_m)[:, None] * headings
-        yaw = [a.grasp_axis_rad if isinstance(a, Pull) else a.pd_rad for a in actions]
-        velocity = np.array([a.speed_mps for a in actions])[:, None] * headings
-        _, sizes = link_boxes(self.shape)
-        poses = self.layout.link_pose(start.mean).numpy()[:, :3]
-        links = nearest_link(np.column_stack([points, np.zeros(batch)]), poses, sizes)
-        fixed = {
-            "pd_rad": torch.tensor([a.pd_rad for a in actions], dtype=DTYPE),
-            "is_pull": torch.as_tensor(is_pull, dtype=DTYPE),
-            "link": torch.as_tensor(links),
-            "link_size_m": torch.as_tensor(sizes, dtype=DTYPE).expand(batch, -1, -1),
-            "link_offset": torch.as_tensor(relative_poses(poses), dtype=DTYPE).expand(
-                batch, -1, -1
-            ),
-        }
+        poses = self.layout.link_pose(start.mean).numpy()[None, :, :3].repeat(batch, 0)
+        motion = self._action_motion(actions, poses)
         # Prediction only: the observation model is never called.
         filter_ = DualFilter(
             self.layout, self.model, cast(ObservationModel, None),
@@ -234,9 +290,7 @@ class DualFilterComponent(Component):
         dt_s = 1.0 / rate_hz
         with torch.no_grad():
             for step in range(round(horizon_s * rate_hz)):
-                xy = tcp_xy + velocity * step * dt_s
-                tcp = np.column_stack([xy, yaw, velocity, np.zeros(batch)])
-                inputs = ProcessInput(tcp=torch.as_tensor(tcp, dtype=DTYPE), **fixed)
+                inputs = motion.inputs(step * dt_s)
                 state_noise = torch.randn(
                     (filter_.sigma_points, self.layout.size), generator=generator, dtype=DTYPE
                 )
@@ -248,6 +302,71 @@ class DualFilterComponent(Component):
                     state_noise.expand(batch, -1, -1), process_noise.expand(batch, -1, -1),
                 )  # fmt: skip
         return [(belief.mean[i], belief.cov[i]) for i in range(batch)]
+
+    def predict_states(
+        self, actions: Sequence[Action], rate_hz: float, states: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Deterministic look-ahead for planning: the process model's mean prediction (no
+        noise, the parameters held at their values) of each action from its state.
+
+        states: [B, n] at rest before the actions (default: the current belief mean, twist
+        zeroed); actions: B pushes or pulls, each carried out for its ``duration_s`` at
+        ``rate_hz`` from its action point as in ``predict_beliefs``. Returns the states
+        [B, n] at the end of each action (float64).
+        """
+        if self.belief is None or self.layout is None or self.shape is None:
+            raise DataError("filters.dual: predict_states before initialise")
+        layout = self.layout
+        if states is None:
+            states = self.belief.mean.expand(len(actions), -1)
+        if states.shape != (len(actions), layout.size):
+            raise ValueError(f"states: expected [{len(actions)}, {layout.size}]")
+        at_rest = torch.ones(layout.size, dtype=DTYPE)
+        at_rest[layout.pose_slice] = torch.tensor([1.0, 1, 1, 0, 0, 0]).repeat(layout.n_links)
+        states = (states * at_rest).unsqueeze(-2)  # [B, 1, n]
+        poses = layout.link_pose(states[:, 0]).numpy()[:, :, :3]
+        motion = self._action_motion(actions, poses)
+        steps = torch.as_tensor([round(a.duration_s * rate_hz) for a in actions])
+        dt_s = 1.0 / rate_hz
+        params = states[..., layout.parameter_slice]
+        with torch.no_grad():
+            for step in range(int(steps.max()) if len(actions) else 0):
+                prediction = self.model.predict(states, motion.inputs(step * dt_s), dt_s)
+                moved = torch.cat([prediction.pose, params], -1)
+                states = torch.where((step < steps)[:, None, None], moved, states)
+        return states[:, 0] * at_rest
+
+    def _action_motion(self, actions: Sequence[Action], poses: FloatArray) -> _ActionMotion:
+        """The gripper's straight motion during each action, with links [B, L, 3] at rest."""
+        assert self.shape is not None
+        batch = len(actions)
+        points = np.array([action_point(action) for action in actions]).reshape(batch, 2)
+        headings = np.array([[np.cos(a.pd_rad), np.sin(a.pd_rad)] for a in actions])
+        executor_config = getattr(self.ctx.find("executor"), "config", None)
+        default_m = CartesianExecutor.Config().pusher_offset_m
+        offset_m = float(getattr(executor_config, "pusher_offset_m", default_m))
+        is_pull = np.array([isinstance(action, Pull) for action in actions])
+        _, sizes = link_boxes(self.shape)
+        links = [
+            int(nearest_link(np.append(point, 0.0)[None], pose, sizes)[0])
+            for point, pose in zip(points, poses, strict=True)
+        ]
+        return _ActionMotion(
+            start_xy=points - np.where(is_pull, 0.0, offset_m)[:, None] * headings,
+            yaw_rad=np.array(
+                [a.grasp_axis_rad if isinstance(a, Pull) else a.pd_rad for a in actions]
+            ),
+            velocity_mps=np.array([a.speed_mps for a in actions])[:, None] * headings,
+            fixed={
+                "pd_rad": torch.tensor([a.pd_rad for a in actions], dtype=DTYPE),
+                "is_pull": torch.as_tensor(is_pull, dtype=DTYPE),
+                "link": torch.as_tensor(links),
+                "link_size_m": torch.as_tensor(sizes, dtype=DTYPE).expand(batch, -1, -1),
+                "link_offset": torch.as_tensor(
+                    np.stack([relative_poses(pose) for pose in poses]), dtype=DTYPE
+                ),
+            },
+        )
 
     def step_history(self) -> list[dict[str, Any]]:
         """The belief after every filter step so far: episode, time_s and per entry

@@ -239,6 +239,24 @@ def observation_log_likelihood(
     return log_likelihood
 
 
+def modality_log_likelihoods(
+    expected: Tensor, observation: Tensor, noise_var: Tensor, n_tactile: int
+) -> Tensor:
+    """The observation likelihood of eq. 37 per modality, for change detection.
+
+    Per modality (the depth entries, then the last ``n_tactile`` tactile entries): the log of
+    the mean over the C points of eq. 37, divided by the modality's number of entries so that
+    images and forces read on one scale. expected [..., C, k], observation [..., k],
+    noise_var [..., k] -> [..., 2] (visual, tactile).
+    """
+    squared = (expected - observation.unsqueeze(-2)).square() / noise_var.unsqueeze(-2)
+    n_visual = squared.shape[-1] - n_tactile
+    visual = squared[..., :n_visual].sum(-1) / n_visual
+    tactile = squared[..., n_visual:].sum(-1) / n_tactile
+    count = math.log(squared.shape[-2])
+    return torch.stack([torch.logsumexp(-0.5 * part, -1) - count for part in (visual, tactile)], -1)
+
+
 def observation_log_weights(expected: Tensor, observation: Tensor, noise_var: Tensor) -> Tensor:
     """Normalised log importance weights (eq. 31) of C points with uniform prior weights.
 
@@ -441,6 +459,8 @@ class DualFilter:
             if floor.shape != (6,) or bool((floor < 0).any()):
                 raise ValueError(f"pose_std_floor: expected 6 values >= 0, got {pose_std_floor}")
             self.pose_var_floor = floor.square().repeat(layout.n_links)
+        self.last_log_likelihood: Tensor | None = None
+        """After ``update``: [..., 2] eq. 37 per modality (see ``modality_log_likelihoods``)."""
 
     def predict(
         self, belief: Belief, inputs: ProcessInput, dt_s: float, generator: torch.Generator
@@ -493,6 +513,9 @@ class DualFilter:
         if unexplained is not None:
             mask = unexplained(observation, expected)
             noise_var = torch.where(mask, torch.full_like(noise_var, UNEXPLAINED_VAR), noise_var)
+        self.last_log_likelihood = modality_log_likelihoods(
+            expected, observation, noise_var, prediction.force_n.shape[-1]
+        )
         parameter_var = noise_var
         if self.marginal_parameter_likelihood:
             parameter_var = noise_var + expected.var(-2)
