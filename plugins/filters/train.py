@@ -138,6 +138,18 @@ def object_files(config: TrainConfig, skill_dir: Path, out_dir: Path) -> dict[st
     return {split: paths[:cap] if cap else paths for split, paths in files.items()}
 
 
+def _keep_partial_run(obj: Path, run_dir: Path) -> None:
+    """A collection run that stopped early (the object pushed out of reach, say) keeps the
+    episodes it recorded; one with none is an error."""
+    episodes = sorted((run_dir / "episodes").glob("*/data.npz"))
+    if not episodes:
+        raise DataError(f"collection failed on {obj} before any episode; see {run_dir}")
+    log.warning(
+        "collection on %s stopped early (see %s); keeping its %d episodes",
+        obj.name, run_dir, len(episodes),
+    )  # fmt: skip
+
+
 def collect(skill: Path, objects: list[Path], out_dir: Path, config: TrainConfig) -> list[Path]:
     """Run the collection skill on every object; returns the run folders."""
     from vistac.cli import main
@@ -154,7 +166,7 @@ def collect(skill: Path, objects: list[Path], out_dir: Path, config: TrainConfig
                 for override in config.collect_overrides:
                     args += ["--set", override]
                 if main(args) != 0:
-                    raise DataError(f"collection failed on {obj}; see {run_dir}")
+                    _keep_partial_run(obj, run_dir)
             runs.append(run_dir)
             log.info("collected %s", run_dir)
     return runs
