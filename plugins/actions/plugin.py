@@ -19,3 +19,7 @@ def vistac_register(registry: Registry) -> None:
     registry.add("action_selector", "actions.uniform", f"{_PACKAGE}.selectors:UniformSelector")
     registry.add("action_selector", "actions.info_gain", f"{_PACKAGE}.info_gain:InfoGainSelector")
     registry.add("executor", "actions.cartesian", f"{_PACKAGE}.executor:CartesianExecutor")
+    registry.add("controller", "actions.icem", f"{_PACKAGE}.icem:ICEMController")
+    registry.add("behaviour", "change_detected", f"{_PACKAGE}.change:ChangeDetected")
+    registry.add("behaviour", "plan_push", f"{_PACKAGE}.goal:PlanPush")
+    registry.add("behaviour", "goal_reached", f"{_PACKAGE}.goal:GoalReached")

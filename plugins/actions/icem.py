@@ -1,0 +1,254 @@
+"""``actions.icem``: goal-driven pushing by iCEM model-predictive control (paper 1, IV-B5).
+
+The improved cross-entropy method of Pinneri et al. (2021) plans a sequence of
+``horizon_pushes`` pushes; the first is executed, then the skill looks, updates the belief and
+plans again. Each push is three numbers: where on the pushed link's outline it starts (a
+fraction of the outline, in the link's frame, so it moves with the object), the offset of its
+direction from the inward normal, and its duration. A sequence is scored by rolling it out
+with the filter's learned process model (``predict_states`` of ``filters.dual``: the mean
+prediction with the belief's parameters); its cost is the mean over the pushes of the
+distance of the predicted pose of link 0 to the goal after each push.
+
+iCEM's ingredients: samples are the mean plus the standard deviation times colored noise
+(power spectrum 1/f^beta along the push sequence), clipped to the bounds; the population
+shrinks by ``population_decay`` per iteration (never below twice the elites); a share of the
+elites is kept into the next iteration and, shifted by one push, into the next plan; the
+mean is added in the last iteration; the best sequence seen is executed.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import Field, model_validator
+from vistac.component import Component, ComponentConfig, ComponentContext
+from vistac.errors import ConfigError, DataError
+from vistac.plugins.actions.affordances import link_outline
+from vistac.protocols import Scene
+from vistac.types import Action, FloatArray, Push, ShapeEstimate
+
+log = logging.getLogger(__name__)
+
+_FRACTION, _OFFSET, _DURATION = 0, 1, 2
+_INFEASIBLE_COST = 1e3
+
+
+def colored_noise(
+    beta: float, shape: tuple[int, ...], length: int, rng: np.random.Generator
+) -> FloatArray:
+    """Unit-variance Gaussian noise [*shape, length] whose power spectrum along the last
+    axis falls as 1/f^beta (beta = 0: white; 2: smooth, as iCEM uses)."""
+    frequencies = np.fft.rfftfreq(length)
+    frequencies[0] = frequencies[1] if length > 1 else 1.0
+    amplitude = frequencies ** (-beta / 2.0)
+    spectrum = amplitude * (
+        rng.standard_normal((*shape, len(frequencies)))
+        + 1j * rng.standard_normal((*shape, len(frequencies)))
+    )
+    if length % 2 == 0 and length > 1:
+        spectrum[..., -1] = spectrum[..., -1].real * math.sqrt(2.0)
+    spectrum[..., 0] = spectrum[..., 0].real * math.sqrt(2.0)
+    signal = np.fft.irfft(spectrum, n=length)
+    return np.asarray(signal / signal.std(axis=-1, keepdims=True).clip(1e-12))
+
+
+def wrap_angle(angle_rad: FloatArray) -> FloatArray:
+    return np.asarray((angle_rad + np.pi) % (2.0 * np.pi) - np.pi)
+
+
+class ICEMController(Component):
+    """Implements the ``Controller`` protocol: ``plan(scene, goal, rng) -> Push``.
+
+    goal: [3] = (x_m, y_m, theta_rad) of link 0 in the filter's belief coordinates."""
+
+    kind = "controller"
+
+    class Config(ComponentConfig):
+        population: int = Field(32, ge=4, description="samples in the first iteration")
+        elites: int = Field(5, ge=1)
+        iterations: int = Field(3, ge=1)
+        horizon_pushes: int = Field(2, ge=1, description="pushes planned ahead")
+        noise_beta: float = Field(2.0, ge=0, description="colored-noise exponent")
+        population_decay: float = Field(1.25, ge=1, description="population shrink per iteration")
+        keep_elites: float = Field(0.3, ge=0, le=1, description="share of elites carried over")
+        momentum: float = Field(0.1, ge=0, lt=1, description="weight of the old mean and std")
+        speed_mps: float = Field(0.02, gt=0, le=0.25)
+        duration_s: tuple[float, float] = Field((0.5, 4.0), description="push duration bounds")
+        max_offset_deg: float = Field(30.0, ge=0, le=80, description="|pd - inward normal|")
+        rate_hz: float = Field(5.0, gt=0, description="steps per second of the look-ahead")
+        angle_weight_m_per_rad: float = Field(
+            0.02, ge=0, description="cost of an angle error, in metres per radian"
+        )
+        approach_clearance_m: float = Field(
+            0.03, ge=0, description="the gripper starts this far behind the contact point"
+        )
+
+        @model_validator(mode="after")
+        def _bounds(self) -> ICEMController.Config:
+            low, high = self.duration_s
+            if not 0 < low <= high:
+                raise ValueError(f"duration_s: need 0 < min <= max, got {self.duration_s}")
+            if self.elites > self.population:
+                raise ValueError("elites must not exceed population")
+            return self
+
+    def __init__(self, config: Config, ctx: ComponentContext) -> None:
+        super().__init__(config, ctx)
+        self.config: ICEMController.Config = config
+        filter_ = ctx.find("filter")
+        if filter_ is None or not callable(getattr(filter_, "predict_states", None)):
+            raise ConfigError(
+                "actions.icem needs a filter component with predict_states (filters.dual) "
+                "whose process model predicts the pushes"
+            )
+        self.filter = filter_
+        arm_config = getattr(ctx.find("arm"), "config", None)
+        self.workspace_m = (
+            np.asarray(getattr(arm_config, "workspace_min_m", (-np.inf,) * 3))[:2],
+            np.asarray(getattr(arm_config, "workspace_max_m", (np.inf,) * 3))[:2],
+        )
+        self._shifted: FloatArray | None = None
+        """Elites of the last plan, shifted by one push: [K, H, 3]."""
+        self.last_cost: float = math.nan
+
+    # -- Controller protocol ----------------------------------------------------------------
+
+    def plan(self, scene: Scene, goal: FloatArray, rng: np.random.Generator) -> Action:
+        if scene.shape is None:
+            raise DataError("actions.icem: no shape estimate; run `look` with a shape estimator")
+        goal = np.asarray(goal, dtype=np.float64)
+        if goal.shape != (3,) or not np.all(np.isfinite(goal)):
+            raise ConfigError(f"actions.icem: goal must be 3 finite numbers, got {goal!r}")
+        outline = _OutlineInLink(scene.shape)
+        best, cost = self._optimise(outline, goal, rng)
+        self.last_cost = cost
+        first = self._pushes(outline, best[None, 0], None)[0][0]
+        log.info(
+            "icem: push at (%.3f, %.3f) m along %.0f deg for %.1f s, predicted goal distance "
+            "%.1f mm", *first.cp_m, math.degrees(first.pd_rad), first.duration_s, cost * 1e3,
+        )  # fmt: skip
+        return first
+
+    # -- iCEM -------------------------------------------------------------------------------
+
+    def _bounds(self) -> tuple[FloatArray, FloatArray]:
+        offset = math.radians(self.config.max_offset_deg)
+        low = np.array([0.0, -offset, self.config.duration_s[0]])
+        high = np.array([1.0, offset, self.config.duration_s[1]])
+        return low, high
+
+    def _optimise(
+        self, outline: _OutlineInLink, goal: FloatArray, rng: np.random.Generator
+    ) -> tuple[FloatArray, float]:
+        """The best push sequence [H, 3] and its cost (m)."""
+        config = self.config
+        low, high = self._bounds()
+        horizon = config.horizon_pushes
+        mean = np.tile(0.5 * (low + high), (horizon, 1))
+        std = np.tile(0.5 * (high - low), (horizon, 1))
+        elites = self._shifted
+        best, best_cost = mean.copy(), math.inf
+        for iteration in range(config.iterations):
+            count = max(round(config.population / config.population_decay**iteration),
+                        2 * config.elites)  # fmt: skip
+            noise = colored_noise(config.noise_beta, (count, 3), horizon, rng).transpose(0, 2, 1)
+            samples = mean + std * noise
+            if elites is not None and len(elites):
+                kept = elites[: max(1, round(config.keep_elites * len(elites)))]
+                samples = np.concatenate([samples, kept])
+            if iteration == config.iterations - 1:
+                samples = np.concatenate([samples, mean[None]])
+            samples = self._clip(samples, low, high)
+            costs = self._costs(outline, samples, goal)
+            order = np.argsort(costs)
+            elites = samples[order[: config.elites]]
+            if costs[order[0]] < best_cost:
+                best, best_cost = samples[order[0]].copy(), float(costs[order[0]])
+            mean = config.momentum * mean + (1 - config.momentum) * elites.mean(0)
+            std = config.momentum * std + (1 - config.momentum) * elites.std(0)
+        assert elites is not None
+        self._shifted = self._shift(elites, low, high)
+        return best, best_cost
+
+    @staticmethod
+    def _clip(samples: FloatArray, low: FloatArray, high: FloatArray) -> FloatArray:
+        """Clip to the bounds; the outline fraction wraps around."""
+        clipped = np.clip(samples, low, high)
+        clipped[..., _FRACTION] = np.mod(samples[..., _FRACTION], 1.0)
+        return clipped
+
+    def _shift(self, elites: FloatArray, low: FloatArray, high: FloatArray) -> FloatArray:
+        """Elites [K, H, 3] advanced by one push, the new last push at the bounds' middle."""
+        tail = np.broadcast_to(0.5 * (low + high), (len(elites), 1, 3))
+        return np.concatenate([elites[:, 1:], tail], axis=1)
+
+    def _costs(self, outline: _OutlineInLink, samples: FloatArray, goal: FloatArray) -> FloatArray:
+        """Cost [N] (m) of push sequences [N, H, 3]: the sum over the pushes of the distance
+        of the predicted link-0 pose to the goal after each (so the first push, the one
+        carried out, already heads there), plus a penalty for pushes the arm cannot start."""
+        states: torch.Tensor | None = None
+        costs = np.zeros(len(samples))
+        low, high = self.workspace_m
+        for step in range(samples.shape[1]):
+            pushes, starts = self._pushes(outline, samples[:, step], states)
+            costs += np.any((starts < low) | (starts > high), axis=1) * _INFEASIBLE_COST
+            states = self.filter.predict_states(pushes, self.config.rate_hz, states)
+            costs += self._goal_distance(states, goal)
+        return costs / samples.shape[1]
+
+    def _goal_distance(self, states: torch.Tensor, goal: FloatArray) -> FloatArray:
+        """Distance [N] (m) of link 0 in states [N, n] from the goal, angles weighted."""
+        pose = self.filter.layout.link_pose(states)[:, 0, :3].numpy()
+        position_m = np.linalg.norm(pose[:, :2] - goal[:2], axis=1)
+        angle_m = self.config.angle_weight_m_per_rad * np.abs(wrap_angle(pose[:, 2] - goal[2]))
+        return np.asarray(np.hypot(position_m, angle_m))
+
+    def _pushes(
+        self, outline: _OutlineInLink, samples: FloatArray, states: torch.Tensor | None
+    ) -> tuple[list[Push], FloatArray]:
+        """The pushes of samples [N, 3] with link 0 at the states' poses [N, n] (None: the
+        belief's), and the gripper start points [N, 2]."""
+        if states is None:
+            states = self.filter.belief.mean.expand(len(samples), -1)
+        pose = self.filter.layout.link_pose(states)[:, 0, :3].numpy()
+        points, normals = outline.at(samples[:, _FRACTION], pose)
+        pd_rad = np.arctan2(-normals[:, 1], -normals[:, 0]) + samples[:, _OFFSET]
+        heading = np.column_stack([np.cos(pd_rad), np.sin(pd_rad)])
+        starts = points - self.config.approach_clearance_m * heading
+        pushes = [
+            Push(point, float(angle), self.config.speed_mps, float(duration), link=0)
+            for point, angle, duration in zip(points, pd_rad, samples[:, _DURATION], strict=True)
+        ]
+        return pushes, starts
+
+
+class _OutlineInLink:
+    """Link 0's mid-height outline in its own frame, placed at any pose.
+
+    points [P, 2] (m) and outward normals [P, 2], counter-clockwise from the fitted
+    superquadric, relative to the shape's pose of link 0."""
+
+    def __init__(self, shape: ShapeEstimate, count: int = 360) -> None:
+        points, normals = link_outline(shape.links[0], count)
+        x, y, theta = np.asarray(shape.initial_poses[0], dtype=np.float64)
+        rotation = _rotation(-theta)
+        self.points = (points - [x, y]) @ rotation.T
+        self.normals = normals @ rotation.T
+
+    def at(self, fraction: FloatArray, poses: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Outline points and normals [N, 2] at fractions [N] with link 0 at poses [N, 3]."""
+        index = np.minimum((fraction * len(self.points)).astype(int), len(self.points) - 1)
+        cos, sin = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        rotation = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
+        points = poses[:, :2] + np.einsum("nij,nj->ni", rotation, self.points[index])
+        normals = np.einsum("nij,nj->ni", rotation, self.normals[index])
+        return points, normals
+
+
+def _rotation(theta_rad: float) -> Any:
+    cos, sin = math.cos(theta_rad), math.sin(theta_rad)
+    return np.array([[cos, -sin], [sin, cos]])

@@ -1,0 +1,179 @@
+"""iCEM goal pushing and change detection: known answers on toy models, and the skills."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from simctx import TestContext
+from vistac.errors import ConfigError
+from vistac.plugins.actions.change import assess, auroc, window_means
+from vistac.plugins.actions.icem import ICEMController, colored_noise
+from vistac.plugins.filters.component import known_parameters, load_summary_belief
+from vistac.plugins.filters.dual import Belief, modality_log_likelihoods
+from vistac.plugins.filters.state import DTYPE, StateLayout
+from vistac.protocols import Scene
+from vistac.types import PointCloud, Push, ShapeEstimate, Superquadric
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# -- iCEM ------------------------------------------------------------------------------------
+
+
+def test_colored_noise_has_unit_variance_and_the_requested_spectrum() -> None:
+    rng = np.random.default_rng(0)
+    for beta in (0.0, 2.0):
+        noise = colored_noise(beta, (400,), 256, rng)
+        assert noise.shape == (400, 256)
+        assert np.allclose(noise.std(axis=-1), 1.0)
+        power = (np.abs(np.fft.rfft(noise, axis=-1)) ** 2).mean(0)[1:]
+        frequencies = np.fft.rfftfreq(256)[1:]
+        slope = np.polyfit(np.log(frequencies), np.log(power), 1)[0]
+        assert slope == pytest.approx(-beta, abs=0.15)
+
+
+class SlidingFilter:
+    """A stand-in for filters.dual: the pushed box slides along the push direction by
+    speed x duration (no rotation); one link, state (x, y, theta, twist, parameters)."""
+
+    kind = "filter"
+
+    def __init__(self, pose: tuple[float, float, float]) -> None:
+        self.layout = StateLayout(1)
+        mean = torch.zeros(self.layout.size, dtype=DTYPE)
+        mean[:3] = torch.tensor(pose, dtype=DTYPE)
+        self.belief = Belief(mean, torch.eye(self.layout.size, dtype=DTYPE))
+        self.calls = 0
+
+    def predict_states(
+        self, actions: list[Push], rate_hz: float, states: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        self.calls += 1
+        if states is None:
+            states = self.belief.mean.expand(len(actions), -1)
+        states = states.clone()
+        for i, push in enumerate(actions):
+            distance = push.speed_mps * push.duration_s
+            states[i, 0] += distance * math.cos(push.pd_rad)
+            states[i, 1] += distance * math.sin(push.pd_rad)
+        return states
+
+
+def _box_shape(xy: tuple[float, float]) -> ShapeEstimate:
+    pose = np.eye(4)
+    pose[:3, 3] = [xy[0], xy[1], 0.025]
+    link = Superquadric(np.array([0.045, 0.045, 0.025]), np.array([0.1, 0.1]), pose)
+    cloud = PointCloud(np.zeros((1, 3)))
+    return ShapeEstimate([link], np.array([[xy[0], xy[1], 0.0]]), np.zeros((1, 14)), cloud)
+
+
+def _controller(tmp_path: Path, start: tuple[float, float, float], **options: Any) -> Any:
+    ctx = TestContext(tmp_path)
+    ctx.components["filter"] = SlidingFilter(start)
+    return ctx.add(ICEMController, **options)
+
+
+def test_icem_plans_pushes_that_bring_the_object_to_the_goal(tmp_path: Path) -> None:
+    scene = Scene(PointCloud(np.zeros((1, 3))), _box_shape((0.0, 0.45)))
+    goal = np.array([0.06, 0.49, 0.0])
+    two = _controller(tmp_path, (0.0, 0.45, 0.0), iterations=4, population=48)
+    assert isinstance(two.plan(scene, goal, np.random.default_rng(0)), Push)
+    assert two.last_cost < 0.01  # the two planned pushes end within 1 cm
+    # With one push, it must start on the far side of the box and head for the goal.
+    one = _controller(tmp_path, (0.0, 0.45, 0.0), iterations=4, population=48, horizon_pushes=1)
+    push = one.plan(scene, goal, np.random.default_rng(0))
+    assert one.last_cost < 0.01
+    heading = np.array([math.cos(push.pd_rad), math.sin(push.pd_rad)])
+    towards_goal = (goal[:2] - [0.0, 0.45]) / np.linalg.norm(goal[:2] - [0.0, 0.45])
+    assert heading @ towards_goal > 0.95
+    assert (push.cp_m - [0.0, 0.45]) @ towards_goal < 0  # behind the centre
+    assert push.speed_mps * push.duration_s == pytest.approx(0.072, abs=0.01)
+
+
+def test_icem_is_deterministic_under_a_seed_and_reuses_elites(tmp_path: Path) -> None:
+    scene = Scene(PointCloud(np.zeros((1, 3))), _box_shape((0.0, 0.45)))
+    goal = np.array([0.05, 0.45, 0.0])
+    first = _controller(tmp_path, (0.0, 0.45, 0.0))
+    second = _controller(tmp_path, (0.0, 0.45, 0.0))
+    a = first.plan(scene, goal, np.random.default_rng(3))
+    b = second.plan(scene, goal, np.random.default_rng(3))
+    assert np.allclose(a.cp_m, b.cp_m) and a.pd_rad == b.pd_rad
+    assert first._shifted is not None and first._shifted.shape == (5, 2, 3)
+
+
+def test_icem_rejects_a_bad_goal_and_a_skill_without_a_filter(tmp_path: Path) -> None:
+    controller = _controller(tmp_path, (0.0, 0.45, 0.0))
+    scene = Scene(PointCloud(np.zeros((1, 3))), _box_shape((0.0, 0.45)))
+    with pytest.raises(ConfigError, match="goal must be 3 finite numbers"):
+        controller.plan(scene, np.array([0.1, math.nan, 0.0]), np.random.default_rng(0))
+    with pytest.raises(ConfigError, match="needs a filter component with predict_states"):
+        TestContext(tmp_path).add(ICEMController)
+
+
+# -- change detection --------------------------------------------------------------------------
+
+
+def test_modality_log_likelihoods_match_equation_37() -> None:
+    expected = torch.zeros(2, 6, dtype=DTYPE)  # C = 2 points, 4 depth + 2 tactile entries
+    expected[1, 4:] = 2.0
+    observation = torch.zeros(6, dtype=DTYPE)
+    noise_var = torch.full((6,), 4.0, dtype=DTYPE)
+    visual, tactile = modality_log_likelihoods(expected, observation, noise_var, 2).tolist()
+    assert visual == pytest.approx(0.0)
+    # per entry: point 0 has 0, point 1 has (2^2/4 * 2) / 2 = 1 -> log((1 + e^-0.5) / 2)
+    assert tactile == pytest.approx(math.log((1 + math.exp(-0.5)) / 2))
+
+
+def test_window_means_and_the_flag_time() -> None:
+    time_s = np.arange(10) / 5.0  # 0 .. 1.8 s at 5 Hz
+    values = np.where(time_s < 1.0, 0.0, -10.0)
+    means = window_means(time_s, values, 0.6)  # windows of 3 steps, full from t = 0.6 s
+    assert means[0] == pytest.approx(0.0)
+    assert means[-1] == pytest.approx(-10.0)
+    steps = [{"episode": 2, "time_s": t, "log_likelihood": {"tactile": v}}
+             for t, v in zip(time_s, values, strict=True)]  # fmt: skip
+    report = assess(steps, "tactile", 0.6, threshold=-2.0)
+    # The window (0.6, 1.2] holds two drops: mean -6.7 < -2 at t = 1.2 s; (0.4, 1.0] has one.
+    assert report.flagged and report.episode == 2
+    assert report.flagged_after_s == pytest.approx(1.0)
+    assert not assess(steps, "tactile", 0.6, threshold=-20.0).flagged
+
+
+def test_auroc_known_values() -> None:
+    assert auroc([-5, -6], [-1, -2]) == 1.0
+    assert auroc([-1, -2], [-5, -6]) == 0.0
+    assert auroc([-1, -3], [-2]) == 0.5
+    with pytest.raises(ValueError, match="at least one score"):
+        auroc([], [1.0])
+
+
+def test_prior_from_an_earlier_summary(tmp_path: Path) -> None:
+    layout = StateLayout(1)
+    names = layout.names[layout.parameter_slice]
+    known = {name: {"mean": 0.1 * (i + 1), "std": 0.01} for i, name in enumerate(names)}
+    path = tmp_path / "summary.json"
+    path.write_text(json.dumps({"belief": known}), encoding="utf-8")
+    start = Belief(torch.zeros(layout.size, dtype=DTYPE), torch.eye(layout.size, dtype=DTYPE))
+    belief = known_parameters(start, layout, load_summary_belief(path), path)
+    for name in names:
+        index = layout.index(name)
+        assert float(belief.mean[index]) == pytest.approx(known[name]["mean"])
+        assert float(belief.cov[index, index]) == pytest.approx(1e-4)
+    assert float(belief.cov[0, 0]) == 1.0
+    path.write_text(json.dumps({"status": "error"}), encoding="utf-8")
+    with pytest.raises(ConfigError, match="has no belief"):
+        load_summary_belief(path)
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_summary_belief(tmp_path / "missing.json")
+    two_links = {name: {"mean": 1.0, "std": 0.1} for name in StateLayout(1).names}
+    with pytest.raises(ConfigError, match="another number of links"):
+        known_parameters(
+            Belief(torch.zeros(21, dtype=DTYPE), torch.eye(21, dtype=DTYPE)),
+            StateLayout(2), two_links, path,
+        )  # fmt: skip
