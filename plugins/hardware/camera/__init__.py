@@ -1,0 +1,1 @@
+"""RGB-D cameras: a live OpenCV camera and a replay of recorded frames."""

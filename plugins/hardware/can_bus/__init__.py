@@ -1,0 +1,1 @@
+"""Generic CAN force/tactile sensor through python-can."""

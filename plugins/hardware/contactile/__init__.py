@@ -1,0 +1,1 @@
+"""Contactile PapillArray tactile pads over their USB serial stream."""

@@ -1,0 +1,1 @@
+"""Robotiq 2F-85 gripper (Modbus RTU over serial, or the UR gripper socket)."""

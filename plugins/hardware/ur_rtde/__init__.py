@@ -1,0 +1,1 @@
+"""UR arm over RTDE (the ``ur_rtde`` package)."""

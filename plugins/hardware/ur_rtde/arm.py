@@ -1,0 +1,377 @@
+"""The UR arm through ``ur_rtde`` (RTDEControlInterface + RTDEReceiveInterface).
+
+Same protocol, config fields and workspace semantics as ``sim.arm``: velocity streaming
+(``speedL``) capped at ``max_speed_mps``, motion that would leave the workspace box refused
+(``SafetyError``), TCP pointing down with yaw about world z (world = robot base frame).
+
+Safety, checked before every command:
+
+- connection and freshness. The library's getters keep returning the last value after the
+  connection drops, and ``isConnected`` lags, so the RTDE ``timestamp`` must have advanced
+  within ``max_data_age_s`` (local ``time.monotonic`` clock, the one ``WallClock`` uses).
+  Stale data or a lost connection raises ``HardwareError`` and marks the arm disconnected
+  until ``reconnect()``.
+- protective / emergency stop: motion is refused with ``SafetyError`` until a person clears
+  it on the pendant (or the dashboard's ``unlock protective stop``); the plugin never clears
+  it. ``speedL`` reports success during a protective stop, so the safety bits are read
+  before each command rather than trusting the return value.
+- connecting: ``probe_controller`` first checks, with timeouts, that the controller streams
+  RTDE data, because the library's constructors hold the GIL while they wait (forever for a
+  controller that accepts connections but sends nothing) and no deadline can stop them.
+- every library call runs with a deadline (``command_timeout_s``; moves: their expected
+  duration plus ``move_timeout_margin_s``): ``moveL`` on a dropped connection would otherwise
+  block for minutes.
+- an RTDE watchdog (``watchdog_min_hz``) makes the controller stop the arm when commands stop
+  arriving; while the arm is idle a background thread keeps it fed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+from pydantic import Field, model_validator
+from vistac.component import Component, ComponentConfig, ComponentContext
+from vistac.errors import HardwareError, SafetyError
+from vistac.plugins.hardware.deadline import call_with_deadline
+from vistac.plugins.hardware.ur_rtde.frames import arm_pose, tcp_pose
+from vistac.plugins.hardware.ur_rtde.probe import probe_controller
+from vistac.types import ArmState, FloatArray
+
+log = logging.getLogger(__name__)
+
+_AXES = ("x", "y", "z")
+_BOUNDARY_TOLERANCE_M = 1e-4
+_ARRIVED_M = 2e-4
+_MOVE_POLL_S = 0.01
+_DISCONNECT_TIMEOUT_S = 2.0
+_PROTECTIVE_STOP_BIT = 1 << 2
+_EMERGENCY_STOP_BITS = (1 << 5) | (1 << 7)
+RECEIVE_VARIABLES = [
+    "timestamp",
+    "actual_TCP_pose",
+    "actual_TCP_speed",
+    "actual_TCP_force",
+    "robot_mode",
+    "safety_mode",
+    "safety_status_bits",
+    "robot_status_bits",
+    "runtime_state",
+]
+
+
+class URArm(Component):
+    """Implements the ``Arm`` protocol on a Universal Robots arm over RTDE."""
+
+    kind = "arm"
+
+    class Config(ComponentConfig):
+        host: str = "192.168.1.10"
+        """The controller's IP address."""
+        frequency_hz: float = Field(default=-1.0, description="RTDE rate; -1: the controller's")
+        max_speed_mps: float = Field(default=0.025, gt=0.0, le=0.25)
+        """Hard cap on the TCP's linear speed (norm of vx, vy, vz)."""
+        max_yaw_rate_rad_s: float = Field(default=0.5, gt=0.0, le=3.0)
+        workspace_min_m: tuple[float, float, float] = (-0.5, 0.15, 0.015)
+        workspace_max_m: tuple[float, float, float] = (0.5, 0.85, 0.5)
+        acceleration_mps2: float = Field(default=0.5, gt=0.0, le=2.0)
+        stop_deceleration_mps2: float = Field(default=2.0, gt=0.0, le=10.0)
+        lookahead_s: float = Field(default=0.1, gt=0.0, le=1.0)
+        """Velocity components are limited so that the TCP stays in the box for this long."""
+        max_data_age_s: float = Field(default=0.1, gt=0.0)
+        """Older RTDE data means the connection is lost."""
+        command_timeout_s: float = Field(default=0.3, gt=0.0)
+        connect_timeout_s: float = Field(default=10.0, gt=0.0)
+        move_timeout_margin_s: float = Field(default=2.0, gt=0.0)
+        watchdog_min_hz: float = Field(default=2.0, ge=0.0)
+        """RTDE watchdog: the controller stops the arm without input this often (0: off)."""
+        upload_script: bool = True
+        """Upload ur_rtde's control script (False: an ExternalControl/custom program runs)."""
+
+        @model_validator(mode="after")
+        def _box(self) -> URArm.Config:
+            for axis, low, high in zip(
+                _AXES, self.workspace_min_m, self.workspace_max_m, strict=True
+            ):
+                if not low < high:
+                    raise ValueError(f"workspace {axis}: min {low} must be below max {high}")
+            return self
+
+    def __init__(self, config: Config, ctx: ComponentContext) -> None:
+        super().__init__(config, ctx)
+        self.max_speed_mps = config.max_speed_mps
+        self._low = np.asarray(config.workspace_min_m, dtype=np.float64)
+        self._high = np.asarray(config.workspace_max_m, dtype=np.float64)
+        self._control: Any = None
+        self._receive: Any = None
+        self._lock = threading.Lock()
+        self._connected = False
+        self._streaming = False
+        self._closed = threading.Event()
+        self._last_rtde_s = -1.0
+        self._last_fresh_s = 0.0
+        self.connect()
+        threading.Thread(target=self._feed_watchdog, name="ur_rtde-watchdog", daemon=True).start()
+
+    # --- connection ----------------------------------------------------------------------
+    def connect(self) -> None:
+        """Open the RTDE interfaces (uploads the control script); HardwareError on failure."""
+        import rtde_control
+        import rtde_receive
+
+        config = self.config
+        flags = rtde_control.RTDEControlInterface.Flags
+        mask = int(flags.FLAG_UPLOAD_SCRIPT) if config.upload_script else 0
+
+        def open_interfaces() -> tuple[Any, Any]:
+            receive = rtde_receive.RTDEReceiveInterface(
+                config.host, config.frequency_hz, RECEIVE_VARIABLES
+            )
+            control = rtde_control.RTDEControlInterface(config.host, config.frequency_hz, mask)
+            return receive, control
+
+        probe_controller(config.host, config.connect_timeout_s)
+        what = f"connecting to the UR controller at {config.host}"
+        self._receive, self._control = call_with_deadline(
+            open_interfaces, config.connect_timeout_s, what
+        )
+        self._connected = True
+        self._last_rtde_s, self._last_fresh_s = -1.0, time.monotonic()
+        self._check_fresh()
+        if config.watchdog_min_hz > 0:
+            self._call(lambda c: c.setWatchdog(config.watchdog_min_hz), "setWatchdog")
+        self._streaming = False
+        log.info("connected to the UR controller at %s", config.host)
+
+    def reconnect(self) -> None:
+        """Drop the old interfaces (never waiting on them) and connect again."""
+        self._connected = False
+        self._abandon()
+        self.connect()
+
+    @property
+    def connected(self) -> bool:
+        return self._connected
+
+    def _abandon(self) -> None:
+        """Disconnect the current interfaces, each with a deadline."""
+        old = (self._control, self._receive)
+        self._control = self._receive = None
+        for interface in old:
+            if interface is not None:
+                _disconnect(interface)
+
+    def _lost(self, reason: str) -> HardwareError:
+        """Mark the arm disconnected and return the error to raise."""
+        if self._connected:
+            log.error("UR arm at %s: %s", self.config.host, reason)
+        self._connected = False
+        return HardwareError(
+            f"UR arm at {self.config.host}: {reason}; check the cable and the controller, "
+            "then reconnect"
+        )
+
+    def _check_fresh(self) -> None:
+        """Raise HardwareError unless the connection is up and the RTDE timestamp advances."""
+        if not self._connected or self._receive is None:
+            raise self._lost("not connected")
+        receive = self._receive
+        timestamp_s = call_with_deadline(
+            receive.getTimestamp, self.config.command_timeout_s, "RTDE getTimestamp"
+        )
+        now_s = time.monotonic()
+        if timestamp_s != self._last_rtde_s:
+            self._last_rtde_s, self._last_fresh_s = timestamp_s, now_s
+        age_s = now_s - self._last_fresh_s
+        if age_s > self.config.max_data_age_s:
+            raise self._lost(
+                f"no new RTDE data for {age_s * 1e3:.0f} ms "
+                f"(limit {self.config.max_data_age_s * 1e3:.0f} ms)"
+            )
+        if not receive.isConnected():
+            raise self._lost("the RTDE connection closed")
+
+    def _call(self, command: Any, what: str, timeout_s: float | None = None) -> Any:
+        """Run ``command(control_interface)`` with a deadline; a timeout disconnects."""
+        if not self._connected or self._control is None:
+            raise self._lost("not connected")
+        control = self._control
+        deadline_s = timeout_s or self.config.command_timeout_s
+
+        def locked() -> Any:
+            if not self._lock.acquire(timeout=deadline_s):
+                raise HardwareError(f"{what}: another command to the arm is still blocked")
+            try:
+                return command(control)
+            finally:
+                self._lock.release()
+
+        try:
+            return call_with_deadline(locked, deadline_s, f"{what} on the UR arm")
+        except HardwareError as exc:
+            raise self._lost(str(exc)) from exc
+
+    # --- safety ------------------------------------------------------------------------------
+    def _safety_bits(self) -> int:
+        return int(self._receive.getSafetyStatusBits())
+
+    def _refuse_if_stopped(self) -> None:
+        bits = self._safety_bits()
+        if bits & (_PROTECTIVE_STOP_BIT | _EMERGENCY_STOP_BITS):
+            kind = "protective" if bits & _PROTECTIVE_STOP_BIT else "emergency"
+            self._streaming = False
+            raise SafetyError(
+                f"UR arm is in a {kind} stop: motion refused. A person must clear it on the "
+                "pendant (or the dashboard's 'unlock protective stop') before the skill is run "
+                "again"
+            )
+
+    def _limit_to_workspace(self, velocity_mps: FloatArray, position_m: FloatArray) -> FloatArray:
+        """Refuse outward motion at the boundary; limit components that would cross it."""
+        at_low = (position_m <= self._low + _BOUNDARY_TOLERANCE_M) & (velocity_mps < 0)
+        at_high = (position_m >= self._high - _BOUNDARY_TOLERANCE_M) & (velocity_mps > 0)
+        if np.any(at_low | at_high):
+            axis = int(np.argmax(at_low | at_high))
+            side, limit = ("min", self._low[axis]) if at_low[axis] else ("max", self._high[axis])
+            self.stop()
+            raise SafetyError(
+                f"arm motion refused: it would leave the workspace "
+                f"({_AXES[axis]} {side} = {limit:.3f} m)"
+            )
+        lookahead_s = self.config.lookahead_s
+        highest = (self._high - position_m) / lookahead_s
+        lowest = (self._low - position_m) / lookahead_s
+        return np.clip(velocity_mps, np.minimum(lowest, 0.0), np.maximum(highest, 0.0))
+
+    # --- Arm protocol -----------------------------------------------------------------------
+    def state(self) -> ArmState:
+        """TCP pose and twist; ``timestamp_s`` is when this RTDE sample arrived (monotonic)."""
+        self._check_fresh()
+        receive = self._receive
+        pose = np.asarray(receive.getActualTCPPose(), dtype=np.float64)
+        speed = np.asarray(receive.getActualTCPSpeed(), dtype=np.float64)
+        stopped = bool(self._safety_bits() & _PROTECTIVE_STOP_BIT)
+        return ArmState(
+            pose=arm_pose(pose),
+            twist=np.array([speed[0], speed[1], speed[2], speed[5]]),
+            timestamp_s=self._last_fresh_s,
+            protective_stop=stopped,
+        )
+
+    def wrench(self) -> FloatArray:
+        """TCP force and torque [6] = (fx, fy, fz N, tx, ty, tz N m), base frame."""
+        self._check_fresh()
+        return np.asarray(self._receive.getActualTCPForce(), dtype=np.float64)
+
+    def command_velocity(self, twist: FloatArray) -> None:
+        """Stream twist [4] = (vx, vy, vz, wz); clamped to the caps, held until the next call."""
+        command = np.asarray(twist, dtype=np.float64)
+        if command.shape != (4,) or not np.all(np.isfinite(command)):
+            self.stop()
+            raise SafetyError(f"arm twist must be 4 finite numbers, got {command!r}")
+        self._check_fresh()
+        self._refuse_if_stopped()
+        speed_mps = float(np.linalg.norm(command[:3]))
+        if speed_mps > self.max_speed_mps:
+            command[:3] *= self.max_speed_mps / speed_mps
+        limit = self.config.max_yaw_rate_rad_s
+        command[3] = np.clip(command[3], -limit, limit)
+        position = np.asarray(self._receive.getActualTCPPose(), dtype=np.float64)[:3]
+        command[:3] = self._limit_to_workspace(command[:3], position)
+        speed = [command[0], command[1], command[2], 0.0, 0.0, command[3]]
+        acceleration = self.config.acceleration_mps2
+        self._streaming = bool(np.any(command))
+        accepted = self._call(lambda c: c.speedL(speed, acceleration, 0.0), "speedL")
+        if not accepted:
+            self.stop()
+            raise HardwareError("the UR controller refused speedL (is the control script running?)")
+
+    def move_to(self, pose: FloatArray, speed_mps: float | None = None) -> None:
+        """Linear move (``moveL``) to pose [4] = (x, y, z, yaw); returns when it is reached.
+
+        The target must be inside the workspace and the speed is capped. The move is started
+        asynchronously and supervised here (freshness, protective stop, watchdog) until the
+        TCP is within ``_ARRIVED_M`` of the target; after its expected duration plus
+        ``move_timeout_margin_s`` the arm is stopped and ``HardwareError`` raised.
+        """
+        target = np.asarray(pose, dtype=np.float64)
+        if target.shape != (4,) or not np.all(np.isfinite(target)):
+            raise SafetyError(f"move target must be 4 finite numbers, got {target!r}")
+        outside = (target[:3] < self._low) | (target[:3] > self._high)
+        if np.any(outside):
+            axis = int(np.argmax(outside))
+            raise SafetyError(
+                f"move target {target[:3].tolist()} is outside the workspace on {_AXES[axis]} "
+                f"([{self._low[axis]:.3f}, {self._high[axis]:.3f}] m)"
+            )
+        speed = min(speed_mps or self.max_speed_mps, self.max_speed_mps)
+        self._check_fresh()
+        self._refuse_if_stopped()
+        start = np.asarray(self._receive.getActualTCPPose(), dtype=np.float64)
+        distance_m = float(np.linalg.norm(target[:3] - start[:3]))
+        deadline_s = time.monotonic() + distance_m / speed + self.config.move_timeout_margin_s
+        tcp = tcp_pose(target).tolist()
+        acceleration = self.config.acceleration_mps2
+        self._streaming = False
+        if not self._call(lambda c: c.moveL(tcp, speed, acceleration, True), "moveL"):
+            self._refuse_if_stopped()
+            raise HardwareError("the UR controller refused moveL (is the control script running?)")
+        while not self._arrived(target[:3]):
+            if time.monotonic() > deadline_s:
+                self.stop()
+                raise HardwareError(f"moveL did not reach {target[:3].tolist()} in time")
+            time.sleep(_MOVE_POLL_S)
+
+    def _arrived(self, target_m: FloatArray) -> bool:
+        """Supervise a move: fresh data, no protective stop; True once at ``target_m``."""
+        self._check_fresh()
+        self._refuse_if_stopped()
+        position = np.asarray(self._receive.getActualTCPPose(), dtype=np.float64)[:3]
+        return float(np.linalg.norm(position - target_m)) < _ARRIVED_M
+
+    def stop(self) -> None:
+        """Stop all motion. Safe at any time, repeatedly, also when disconnected (then it only
+        logs: the controller's watchdog stops an arm that nobody talks to)."""
+        self._streaming = False
+        if not self._connected or self._control is None:
+            log.warning("UR arm stop() while disconnected: relying on the controller watchdog")
+            return
+        deceleration = self.config.stop_deceleration_mps2
+        try:
+            self._call(lambda c: c.speedStop(deceleration), "speedStop")
+        except HardwareError as exc:
+            log.error("UR arm stop failed: %s", exc)
+
+    def close(self) -> None:
+        self._closed.set()
+        if self._connected:
+            self.stop()
+        self._connected = False
+        self._abandon()
+
+    def _feed_watchdog(self) -> None:
+        """Kick the RTDE watchdog unless velocities are streamed (then the commands feed it:
+        a control loop that stops commanding lets the controller stop the arm)."""
+        rate_hz = self.config.watchdog_min_hz
+        if rate_hz <= 0:
+            return
+        while not self._closed.wait(0.5 / rate_hz):
+            if self._connected and not self._streaming:
+                with contextlib.suppress(HardwareError):  # reported by the next command
+                    self._call(lambda c: c.kickWatchdog(), "kickWatchdog")
+
+
+def _disconnect(interface: Any) -> None:
+    """Disconnect within ``_DISCONNECT_TIMEOUT_S``. An interface stuck in a call can not be
+    destroyed safely (its C++ destructor joins the stuck thread, or aborts the process at
+    exit), so it is kept alive for the rest of the process instead."""
+    try:
+        call_with_deadline(interface.disconnect, _DISCONNECT_TIMEOUT_S, "RTDE disconnect")
+    except HardwareError as exc:
+        log.warning("%s; leaving the stuck RTDE interface behind", exc)
+        ctypes.pythonapi.Py_IncRef(ctypes.py_object(interface))

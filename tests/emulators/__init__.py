@@ -1,0 +1,1 @@
+"""Protocol-level emulators of the real devices (UR controller, Robotiq, PapillArray)."""

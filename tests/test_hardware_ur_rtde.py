@@ -1,0 +1,198 @@
+"""``ur_rtde.arm`` with the real ``ur_rtde`` client against the emulated UR controller."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from emulators.loopback import next_loopback
+from emulators.ur_controller import URControllerProcess
+from vistac.errors import HardwareError, SafetyError
+from vistac.pluginmanager import Plugins
+from vistac.plugins.hardware.deadline import DeadlineExceededError, call_with_deadline
+from vistac.plugins.hardware.ur_rtde.frames import arm_pose, tcp_pose
+from vistac.testing import build_components, check_component
+
+START = [0.0, 0.45, 0.15, np.pi, 0.0, 0.0]
+
+
+@pytest.fixture
+def emulator() -> Iterator[URControllerProcess]:
+    with URControllerProcess(next_loopback(), START) as process:
+        yield process
+
+
+def make_arm(plugins: Plugins, tmp_path: Path, host: str, **options: Any) -> Any:
+    components = {"arm": {"plugin": "ur_rtde.arm", "with": {"host": host, **options}}}
+    ctx = build_components(components, tmp_path, plugins=plugins)
+    return ctx.component("arm")
+
+
+def wait_for(predicate: Any, timeout_s: float = 2.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def test_frames_round_trip() -> None:
+    for yaw in (0.0, 0.4, -2.5, 3.0):
+        pose = np.array([0.1, 0.5, 0.2, yaw])
+        assert np.allclose(arm_pose(tcp_pose(pose)), pose)
+    assert np.allclose(tcp_pose([0, 0, 0, 0])[3:], [np.pi, 0, 0])  # tool down
+
+
+def test_deadline_returns_value_or_times_out() -> None:
+    assert call_with_deadline(lambda: 42, 1.0, "answer") == 42
+    started = time.monotonic()
+    with pytest.raises(DeadlineExceededError, match="did not return within 100 ms"):
+        call_with_deadline(lambda: time.sleep(5), 0.1, "sleeper")
+    assert time.monotonic() - started < 0.5
+    with pytest.raises(HardwareError, match="boom failed: bad"):
+        call_with_deadline(lambda: (_ for _ in ()).throw(ValueError("bad")), 1.0, "boom")
+
+
+def test_streams_velocity_reads_pose_and_force(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    arm = make_arm(plugins, tmp_path, emulator.host)
+    try:
+        start = arm.state()
+        assert np.allclose(start.pose, [0.0, 0.45, 0.15, 0.0], atol=1e-6)
+        assert emulator.state()["script_uploads"] == 1
+        assert emulator.state()["watchdog_hz"] == 2.0
+        emulator.set_force([1.0, -2.0, 3.0, 0.0, 0.0, 0.1])
+        assert wait_for(lambda: np.allclose(arm.wrench(), [1.0, -2.0, 3.0, 0.0, 0.0, 0.1]))
+        for _ in range(10):  # 0.5 s at 0.02 m/s along +x
+            arm.command_velocity(np.array([0.02, 0.0, 0.0, 0.0]))
+            time.sleep(0.05)
+        moving = arm.state()
+        assert moving.twist[0] == pytest.approx(0.02, abs=1e-6)
+        arm.stop()
+        time.sleep(0.1)
+        stopped = arm.state()
+        assert np.linalg.norm(stopped.twist) < 1e-6
+        assert stopped.pose[0] == pytest.approx(0.01, abs=0.003)  # 0.02 m/s for ~0.5 s
+        assert stopped.timestamp_s > start.timestamp_s
+        assert 10 in emulator.state()["commands"] and 15 in emulator.state()["commands"]
+    finally:
+        arm.close()
+
+
+def test_speed_is_capped_and_moves_stay_in_the_workspace(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    arm = make_arm(plugins, tmp_path, emulator.host, workspace_max_m=[0.02, 0.85, 0.5])
+    try:
+        arm.command_velocity(np.array([1.0, 1.0, 0.0, 5.0]))  # far above the caps
+        time.sleep(0.15)
+        twist = arm.state().twist
+        assert np.linalg.norm(twist[:3]) == pytest.approx(0.025, rel=1e-6)
+        assert twist[3] == pytest.approx(0.5)
+        arm.stop()
+        with pytest.raises(SafetyError, match="outside the workspace on x"):
+            arm.move_to(np.array([0.1, 0.45, 0.15, 0.0]))
+        arm.move_to(np.array([0.02, 0.45, 0.15, 0.0]), speed_mps=1.0)  # capped to 25 mm/s
+        assert arm.state().pose[0] == pytest.approx(0.02, abs=3e-4)
+        time.sleep(0.1)  # the last 0.2 mm
+        with pytest.raises(SafetyError, match=r"leave the workspace \(x max = 0\.020 m\)"):
+            arm.command_velocity(np.array([0.01, 0.0, 0.0, 0.0]))
+        arm.command_velocity(np.array([-0.01, 0.0, 0.0, 0.0]))  # back inside is allowed
+        arm.stop()
+    finally:
+        arm.close()
+
+
+def test_dropped_connection_is_detected_fast_and_nothing_blocks(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    arm = make_arm(plugins, tmp_path, emulator.host)
+    try:
+        arm.command_velocity(np.array([0.01, 0.0, 0.0, 0.0]))
+        dropped_at = time.monotonic()
+        emulator.drop()
+        with pytest.raises(HardwareError):
+            while time.monotonic() - dropped_at < 2.0:  # a 15 Hz control loop
+                arm.command_velocity(np.array([0.01, 0.0, 0.0, 0.0]))
+                time.sleep(1 / 15)
+        latency_s = time.monotonic() - dropped_at
+        assert latency_s < 0.5, f"disconnect detected after {latency_s:.3f} s"
+        assert not arm.connected
+        with pytest.raises(HardwareError, match="not connected"):
+            arm.state()
+        arm.stop()  # never raises, never blocks
+        emulator.restore()
+        arm.reconnect()
+        assert arm.connected and arm.state().pose.shape == (4,)
+    finally:
+        arm.close()
+
+
+def test_silent_controller_times_out_a_blocking_move(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    arm = make_arm(plugins, tmp_path, emulator.host, max_data_age_s=1.0, move_timeout_margin_s=0.3)
+    try:
+        emulator.silent(True)  # moveL would wait for the controller's answer for minutes
+        started = time.monotonic()
+        with pytest.raises(HardwareError):
+            arm.move_to(np.array([0.005, 0.45, 0.15, 0.0]))
+        assert time.monotonic() - started < 1.5
+        with pytest.raises(HardwareError, match="not connected"):
+            arm.command_velocity(np.zeros(4))
+    finally:
+        arm.close()
+
+
+def test_protective_stop_refuses_motion_until_a_person_clears_it(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    arm = make_arm(plugins, tmp_path, emulator.host)
+    try:
+        arm.command_velocity(np.array([0.02, 0.0, 0.0, 0.0]))
+        emulator.protective_stop()
+        assert wait_for(lambda: arm.state().protective_stop)
+        with pytest.raises(SafetyError, match="protective stop: motion refused"):
+            arm.command_velocity(np.array([0.02, 0.0, 0.0, 0.0]))
+        with pytest.raises(SafetyError, match="protective stop"):
+            arm.move_to(np.array([0.0, 0.5, 0.15, 0.0]))
+        held = emulator.state()["pose"]
+        time.sleep(0.2)
+        assert emulator.state()["pose"] == held  # nothing moves
+        assert "unlock protective stop" not in emulator.state()["dashboard"]  # never self-cleared
+        assert emulator.dashboard("unlock protective stop") == "Protective stop releasing"
+        assert wait_for(lambda: not arm.state().protective_stop)
+        arm.command_velocity(np.array([0.0, 0.01, 0.0, 0.0]))
+        assert wait_for(lambda: arm.state().twist[1] > 0.005)
+        arm.stop()
+    finally:
+        arm.close()
+
+
+def test_ur_arm_conforms(emulator: URControllerProcess, plugins: Plugins, tmp_path: Path) -> None:
+    arm = make_arm(plugins, tmp_path, emulator.host)
+    try:
+        check_component(arm, advance=time.sleep)
+    finally:
+        arm.close()
+
+
+def test_unreachable_controller_gives_a_clear_error(plugins: Plugins, tmp_path: Path) -> None:
+    with pytest.raises(HardwareError, match=r"UR controller at 127\.0\.0\.3 does not answer"):
+        make_arm(plugins, tmp_path, "127.0.0.3", connect_timeout_s=3.0)
+
+
+def test_silent_controller_does_not_hang_the_connection(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    emulator.silent(True)  # accepts connections, streams nothing: ur_rtde would wait forever
+    started = time.monotonic()
+    with pytest.raises(HardwareError, match=r"does not answer or stream RTDE data within 0\.5 s"):
+        make_arm(plugins, tmp_path, emulator.host, connect_timeout_s=0.5)
+    assert time.monotonic() - started < 1.5
