@@ -24,6 +24,8 @@ MODULES = (
     "bench_shape_views",
     "bench_filter",
     "bench_actions",
+    "bench_touch_pf",
+    "bench_touch_gpis",
 )
 
 

@@ -194,6 +194,39 @@ def _check_action_selector(selector: Any, advance: Advance) -> None:
     )
 
 
+def _is_point(value: Any) -> bool:
+    array = np.asarray(value, dtype=np.float64)
+    return array.shape == (3,) and bool(np.all(np.isfinite(array)))
+
+
+def _check_touch_probe(probe: Any, advance: Advance) -> None:
+    far = np.array([50.0, 50.0, 50.0])
+    result = probe.probe(far, far + np.array([0.0, 0.0, 0.1]))
+    assert result is None, "a touch far from everything is a miss (None)"
+    start, target = np.array([0.0, 0.5, 1.5]), np.array([0.0, 0.5, -0.5])
+    result = probe.probe(start, target)
+    if result is not None:
+        point, normal = result
+        assert _is_point(point) and _is_point(normal), "a contact is (point [3], normal [3])"
+        assert abs(float(np.linalg.norm(normal)) - 1.0) < 1e-6, "the normal is a unit vector"
+
+
+def _check_touch_estimator(estimator: Any, advance: Advance) -> None:
+    far = np.array([50.0, 50.0, 50.0])
+    estimate = estimator.update(far, far + np.array([0.0, 0.0, 0.1]), None)
+    assert isinstance(estimate, dict), "update() returns a dict"
+
+
+def _check_touch_explorer(explorer: Any, advance: Advance) -> None:
+    first = explorer.next_touch({}, np.random.default_rng(5))
+    assert first is not None, "with no data yet the explorer proposes a touch"
+    start, target = first
+    assert _is_point(start) and _is_point(target), "a touch is (start [3], target [3])"
+    assert float(np.linalg.norm(np.asarray(target) - np.asarray(start))) > 0, (
+        "a touch moves somewhere"
+    )
+
+
 _CHECKS: dict[str, Callable[[Any, Advance], None]] = {
     "world": _check_world,
     "arm": _check_arm,
@@ -203,4 +236,7 @@ _CHECKS: dict[str, Callable[[Any, Advance], None]] = {
     "view_planner": _check_view_planner,
     "action_sampler": _check_action_sampler,
     "action_selector": _check_action_selector,
+    "touch_probe": _check_touch_probe,
+    "touch_estimator": _check_touch_estimator,
+    "touch_explorer": _check_touch_explorer,
 }

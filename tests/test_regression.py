@@ -34,10 +34,12 @@ def _key(path: Path) -> str:
 
 
 def _digest(summary: dict[str, Any]) -> dict[str, Any]:
-    """What a regression compares: outcome, views and each episode's gist."""
+    """What a regression compares: outcome, views, each episode's gist and, for touch skills,
+    the most likely class."""
     return {
         "status": summary["status"],
-        "views": summary["views"],
+        "views": summary.get("views", 0),
+        "touch_class": (summary.get("touch") or {}).get("mle_class"),
         "episodes": [
             {
                 "kind": e["action"]["kind"],
@@ -45,7 +47,7 @@ def _digest(summary: dict[str, Any]) -> dict[str, Any]:
                 "displacement_m": e.get("object_displacement_m"),
                 "peak_force_n": e.get("peak_tactile_force_n"),
             }
-            for e in summary["episodes"]
+            for e in summary.get("episodes", [])
         ],
     }
 
@@ -53,6 +55,7 @@ def _digest(summary: dict[str, Any]) -> dict[str, Any]:
 def _compare(got: dict[str, Any], want: dict[str, Any]) -> None:
     assert got["status"] == want["status"]
     assert abs(got["views"] - want["views"]) <= VIEWS_TOL
+    assert got.get("touch_class") == want.get("touch_class")
     assert len(got["episodes"]) == len(want["episodes"])
     for g, w in zip(got["episodes"], want["episodes"], strict=True):
         assert (g["kind"], g["steps"]) == (w["kind"], w["steps"])

@@ -1,0 +1,458 @@
+"""``touch.pf``: a particle filter over (object class, 6D pose) from touches (paper 2, III-C
+to III-F).
+
+Per touch (Algorithm 1): weigh the particles by the new observation (contact: signed
+distance and normal, eq. 12-16; miss: negative information, eq. 17-18), resample (stochastic
+universal sampling, with a small roughening of duplicated particles), propose new particles
+from point-pair features of the new contact paired with a fixed-size selection of earlier
+contacts (Drost 2010 hash tables over each class's Poisson-disk samples), weigh them with the
+approximation of eq. 25-27, and report the class probabilities, the maximum-likelihood
+(class, pose) and the known/novel decision of eq. 28.
+
+Particles of one class are evaluated together through that class's signed distance grid in
+the object frame: observations are moved by each particle's inverse pose.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+from scipy.spatial.transform import Rotation
+from scipy.special import log_ndtr
+from vistac.component import Component, ComponentConfig, ComponentContext
+from vistac.errors import ConfigError
+from vistac.plugins.touch.library import KNOWN, resolve_shape
+from vistac.plugins.touch.meshes import GridSDF, Mesh, apply_pose, transform_sdf
+from vistac.plugins.touch.ppf import PpfTable, Quantisation, align_pairs, point_pair_features
+from vistac.plugins.touch.types import MlePrior
+from vistac.types import FloatArray
+
+log = logging.getLogger(__name__)
+
+SURFACE_SAMPLES = 400
+"""Surface samples per class published for exploration (eq. 42) and metrics."""
+
+
+def contact_log_likelihood(
+    distance_m: FloatArray, normal_error: FloatArray, sigma_distance_m: float, sigma_normal: float
+) -> FloatArray:
+    """log p(contact | x) - log p_max (eq. 14-16): distance [...] predicted at the contact and
+    normal_error [...] = |n_observed - n_predicted|; 0 for an exact contact."""
+    return -0.5 * (distance_m / sigma_distance_m) ** 2 - 0.5 * (normal_error / sigma_normal) ** 2
+
+
+def miss_log_likelihood(distance_m: FloatArray, sigma_distance_m: float) -> FloatArray:
+    """log p(no contact | x) (eq. 17-18): log of (1 + erf(d / (sqrt(2) sigma))) / 2 at the
+    predicted signed distance d [...] of a point the probe reached without touching."""
+    return np.asarray(log_ndtr(distance_m / sigma_distance_m), dtype=np.float64)
+
+
+def stochastic_universal_sampling(weights: FloatArray, count: int, rng: np.random.Generator) -> Any:
+    """Indices [count] drawn with one random offset and equal spacing (sorted)."""
+    positions = (rng.uniform() + np.arange(count)) / count
+    cumulative = np.cumsum(weights / weights.sum())
+    cumulative[-1] = 1.0
+    return np.searchsorted(cumulative, positions, side="right").clip(0, len(weights) - 1)
+
+
+@dataclass
+class ShapeClass:
+    """One known class: its mesh, SDF grid, PPF table and published surface samples."""
+
+    name: str
+    mesh: Mesh
+    grid: GridSDF
+    table: PpfTable
+    surface: FloatArray
+    surface_normals: FloatArray
+
+
+@dataclass
+class Particles:
+    """class index [N], rotation [N, 3, 3] and translation [N, 3] (world_from_object),
+    log weight [N]."""
+
+    cls: Any
+    rotation: FloatArray
+    translation: FloatArray
+    log_weight: FloatArray
+
+    @classmethod
+    def empty(cls) -> Particles:
+        return cls(np.zeros(0, int), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0))
+
+    def __len__(self) -> int:
+        return len(self.cls)
+
+    def take(self, index: Any) -> Particles:
+        return Particles(
+            self.cls[index], self.rotation[index], self.translation[index], self.log_weight[index]
+        )
+
+    def concat(self, other: Particles) -> Particles:
+        return Particles(
+            np.concatenate([self.cls, other.cls]),
+            np.concatenate([self.rotation, other.rotation]),
+            np.concatenate([self.translation, other.translation]),
+            np.concatenate([self.log_weight, other.log_weight]),
+        )
+
+    def pose(self, index: int) -> FloatArray:
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = self.rotation[index], self.translation[index]
+        return pose
+
+
+class TouchParticleFilter(Component):
+    """Recognition and 6D pose estimation of a known object from touches."""
+
+    kind = "touch_estimator"
+
+    class Config(ComponentConfig):
+        classes: list[str] = Field(
+            default_factory=lambda: list(KNOWN),
+            description="known classes: library names or mesh file paths",
+        )
+        feature_points: int = Field(200, ge=10, description="Poisson-disk samples per class")
+        distance_step_m: float = Field(0.015, gt=0, description="PPF distance bin")
+        angle_step_deg: float = Field(30.0, gt=0, le=90, description="PPF angle bin")
+        sigma_distance_m: float = Field(0.006, gt=0)
+        sigma_normal: float = Field(0.5, gt=0)
+        resample_count: int = Field(1000, gt=0, description="particles kept by resampling")
+        proposals_per_class: int = Field(500, ge=0, description="new particles per class and step")
+        pair_points: int = Field(4, ge=1, description="earlier contacts paired with a new one")
+        propose_below: float = Field(
+            0.98,
+            gt=0,
+            le=1,
+            description="propose only while the MLE's mean contact likelihood ratio is below this",
+        )
+        known_contact_ratio: float = Field(0.6, gt=0, le=1, description="rho of eq. 28")
+        known_miss_likelihood: float = Field(0.5, gt=0, le=1, description="gamma of eq. 28")
+        decide_after_contacts: int = Field(10, ge=2, description="known/novel from this many")
+        roughen_position_m: float = Field(0.002, ge=0)
+        roughen_rotation_deg: float = Field(1.5, ge=0)
+        mle_candidates: int = Field(
+            32, ge=1, description="top-weighted particles checked on all data for the MLE"
+        )
+        workspace_centre_m: tuple[float, float, float] = (0.0, 0.5, 0.3)
+        workspace_half_extent_m: float = Field(0.2, gt=0, description="the object is inside")
+        free_path_step_m: float = Field(
+            0.025,
+            gt=0,
+            description="negative information every this far along the free part "
+            "of each probe path inside the workspace",
+        )
+        contact_margin_m: float = Field(
+            0.01, ge=0, description="free path ends this far before a contact"
+        )
+
+    def __init__(self, config: Config, ctx: ComponentContext) -> None:
+        super().__init__(config, ctx)
+        if not config.classes:
+            raise ConfigError("touch.pf needs at least one known class")
+        self._rng = ctx.rng("touch_pf")
+        quantisation = Quantisation(config.distance_step_m, np.deg2rad(config.angle_step_deg))
+        start_s = time.perf_counter()
+        self.classes = [self._build_class(spec, quantisation) for spec in config.classes]
+        self.build_s = time.perf_counter() - start_s
+        self.table_build_s = sum(c.table.build_s for c in self.classes)
+        self.particles = Particles.empty()
+        self.contacts = np.zeros((0, 3))
+        self.normals = np.zeros((0, 3))
+        self.miss_points = np.zeros((0, 3))
+        self.free_points = np.zeros((0, 3))
+        self.max_particle_count = 0
+        self.steps = 0
+        self._mle: int | None = None
+        self._mle_log_likelihood = np.zeros(0)
+
+    def _build_class(self, spec: str, quantisation: Quantisation) -> ShapeClass:
+        mesh = resolve_shape(spec, self.ctx.skill_dir)
+        points, normals = _feature_samples(mesh, self.config.feature_points)
+        surface, surface_normals = mesh.surface_samples(SURFACE_SAMPLES, seed=1)
+        return ShapeClass(
+            mesh.name,
+            mesh,
+            mesh.grid_sdf,
+            PpfTable(points, normals, quantisation),
+            surface,
+            surface_normals,
+        )
+
+    @property
+    def class_names(self) -> list[str]:
+        return [c.name for c in self.classes]
+
+    # --- likelihood ------------------------------------------------------------------
+
+    def log_likelihoods(
+        self, particles: Particles, points: FloatArray, normals: FloatArray | None
+    ) -> FloatArray:
+        """Per particle and point [N, K]: contact log likelihoods (eq. 16) when ``normals``
+        [K, 3] is given, else negative-information log likelihoods (eq. 18)."""
+        result = np.zeros((len(particles), len(points)))
+        if len(points) == 0:
+            return result
+        for index in np.unique(particles.cls):
+            rows = np.flatnonzero(particles.cls == index)
+            rotation, translation = particles.rotation[rows], particles.translation[rows]
+            local = np.einsum("nkj,nji->nki", points[None] - translation[:, None], rotation)
+            distance, predicted = self.classes[index].grid(local)
+            if normals is None:
+                result[rows] = miss_log_likelihood(distance, self.config.sigma_distance_m)
+                continue
+            observed = np.einsum("kj,nji->nki", normals, rotation)
+            error = np.linalg.norm(observed - predicted, axis=-1)
+            result[rows] = contact_log_likelihood(
+                distance, error, self.config.sigma_distance_m, self.config.sigma_normal
+            )
+        return result
+
+    def _all_data(self, particles: Particles) -> tuple[FloatArray, FloatArray]:
+        """Per particle: contact log likelihoods [N, K] and free-space log likelihoods [N, J]."""
+        return (
+            self.log_likelihoods(particles, self.contacts, self.normals),
+            self.log_likelihoods(particles, self.free_points, None),
+        )
+
+    def free_path(self, start_m: FloatArray, end_m: FloatArray) -> FloatArray:
+        """Points [J, 3] every ``free_path_step_m`` along start -> end inside the workspace
+        cube, the end included when inside: places the probe passed without contact."""
+        length_m = float(np.linalg.norm(end_m - start_m))
+        steps = np.arange(length_m, 0.0, -self.config.free_path_step_m)[::-1]
+        points = start_m + np.outer(steps / max(length_m, 1e-12), end_m - start_m)
+        centre = np.asarray(self.config.workspace_centre_m)
+        inside = np.all(np.abs(points - centre) <= self.config.workspace_half_extent_m, axis=1)
+        return np.asarray(points[inside], dtype=np.float64)
+
+    # --- the filter step -------------------------------------------------------------
+
+    def update(
+        self,
+        start_m: FloatArray,
+        target_m: FloatArray,
+        contact: tuple[FloatArray, FloatArray] | None,
+    ) -> dict[str, Any]:
+        """One touch from ``start_m`` [3] to ``target_m`` [3]: a contact (point [3], normal
+        [3]) or None (the probe reached the target untouched: negative information there)."""
+        self.steps += 1
+        start, target = (
+            np.asarray(start_m, dtype=np.float64),
+            np.asarray(target_m, dtype=np.float64),
+        )
+        if contact is None:
+            self.miss_points = np.vstack([self.miss_points, target[None]])
+            free = self.free_path(start, target)
+        else:
+            point, normal = (np.asarray(v, dtype=np.float64) for v in contact)
+            self.contacts = np.vstack([self.contacts, point[None]])
+            self.normals = np.vstack([self.normals, (normal / np.linalg.norm(normal))[None]])
+            self._weigh(self.contacts[-1:], self.normals[-1:])
+            direction = (point - start) / max(float(np.linalg.norm(point - start)), 1e-12)
+            free = self.free_path(start, point - self.config.contact_margin_m * direction)
+        self.free_points = np.vstack([self.free_points, free])
+        self._weigh(free, None)
+        self._resample()
+        self._find_mle()
+        if contact is not None and len(self.contacts) >= 2 and self._needs_proposals():
+            self._propose()
+            self._find_mle()
+        self.max_particle_count = max(self.max_particle_count, len(self.particles))
+        return self.estimate()
+
+    def _weigh(self, points: FloatArray, normals: FloatArray | None) -> None:
+        if len(self.particles):
+            self.particles.log_weight = self.particles.log_weight + self.log_likelihoods(
+                self.particles, points, normals
+            ).sum(axis=1)
+
+    def _normalised_weights(self) -> FloatArray:
+        log_weight = self.particles.log_weight - self.particles.log_weight.max()
+        weights = np.exp(log_weight)
+        return np.asarray(weights / weights.sum(), dtype=np.float64)
+
+    def _resample(self) -> None:
+        """SUS down to ``resample_count`` particles with equal weights; duplicates are
+        roughened (the first copy of each particle stays where it was)."""
+        if len(self.particles) == 0:
+            return
+        count = min(self.config.resample_count, len(self.particles))
+        index = stochastic_universal_sampling(self._normalised_weights(), count, self._rng)
+        self.particles = self.particles.take(index)
+        self.particles.log_weight = np.full(count, -np.log(count))
+        duplicate = np.flatnonzero(np.r_[False, index[1:] == index[:-1]])
+        self._roughen(duplicate)
+
+    def _roughen(self, rows: Any) -> None:
+        if len(rows) == 0:
+            return
+        turn = np.deg2rad(self.config.roughen_rotation_deg)
+        spin = Rotation.from_rotvec(self._rng.normal(0.0, turn, (len(rows), 3))).as_matrix()
+        self.particles.rotation[rows] = spin @ self.particles.rotation[rows]
+        self.particles.translation[rows] += self._rng.normal(
+            0.0, self.config.roughen_position_m, (len(rows), 3)
+        )
+
+    def _find_mle(self) -> None:
+        """The MLE particle: the best, over all data, of the top-weighted candidates."""
+        if len(self.particles) == 0:
+            self._mle = None
+            return
+        top = np.argsort(-self.particles.log_weight)[: self.config.mle_candidates]
+        contact_ll, miss_ll = self._all_data(self.particles.take(top))
+        total = contact_ll.sum(axis=1) + miss_ll.sum(axis=1)
+        best = int(np.argmax(total))
+        self._mle = int(top[best])
+        self._mle_contact_ll, self._mle_miss_ll = contact_ll[best], miss_ll[best]
+
+    def _mle_total(self) -> float:
+        return float(self._mle_contact_ll.sum() + self._mle_miss_ll.sum())
+
+    def _needs_proposals(self) -> bool:
+        if self._mle is None:
+            return True
+        return float(np.exp(self._mle_contact_ll).mean()) < self.config.propose_below
+
+    def _pair_partners(self) -> Any:
+        """Indices of earlier contacts paired with the newest: sorted by distance to it,
+        split into ``pair_points`` segments, the first of each (III-E)."""
+        earlier = len(self.contacts) - 1
+        distance = np.linalg.norm(self.contacts[:earlier] - self.contacts[-1], axis=1)
+        order = np.argsort(distance)
+        segments = np.array_split(order, min(self.config.pair_points, earlier))
+        return np.array([segment[0] for segment in segments])
+
+    def _propose(self) -> None:
+        partners = self._pair_partners()
+        newest = len(self.contacts) - 1
+        first = np.r_[np.full(len(partners), newest), partners]
+        second = np.r_[partners, np.full(len(partners), newest)]
+        points, normals = self.contacts, self.normals
+        keys = self.classes[0].table.quantisation.keys(
+            point_pair_features(points[first], normals[first], points[second], normals[second])
+        )
+        subset = np.r_[partners, newest]
+        proposals = [
+            self._class_proposals(i, keys, first, second, subset) for i in range(len(self.classes))
+        ]
+        new = [p for p in proposals if p is not None]
+        if new:
+            for particles in new:
+                self.particles = self.particles.concat(particles)
+            self.particles.log_weight -= self.particles.log_weight.max()
+
+    def _class_proposals(
+        self, index: int, keys: Any, first: Any, second: Any, subset: Any
+    ) -> Particles | None:
+        """New particles of class ``index`` from matching model pairs, weighted by eq. 27."""
+        shape = self.classes[index]
+        model_first, model_second, query = shape.table.lookup(keys)
+        if len(query) == 0:
+            return None
+        if len(query) > self.config.proposals_per_class:
+            keep = self._rng.choice(len(query), self.config.proposals_per_class, replace=False)
+            model_first, model_second, query = model_first[keep], model_second[keep], query[keep]
+        m_points, m_normals = shape.table.points, shape.table.normals
+        poses = align_pairs(
+            m_points[model_first],
+            m_normals[model_first],
+            m_points[model_second],
+            self.contacts[first[query]],
+            self.normals[first[query]],
+            self.contacts[second[query]],
+        )
+        new = Particles(
+            np.full(len(poses), index), poses[:, :3, :3], poses[:, :3, 3], np.zeros(len(poses))
+        )
+        subset_ll = self.log_likelihoods(new, self.contacts[subset], self.normals[subset]).sum(1)
+        best = int(np.argmax(subset_ll))
+        contact_ll, miss_ll = self._all_data(new.take([best]))
+        best_total = float(contact_ll.sum() + miss_ll.sum())
+        reference = self._reference_log_weight()
+        new.log_weight = reference + best_total + (subset_ll - subset_ll[best])
+        return new
+
+    def _reference_log_weight(self) -> float:
+        """log(w_mle) - log L(all data | x_mle) of eq. 27 (0 before there is an MLE)."""
+        if self._mle is None:
+            return 0.0
+        return float(self.particles.log_weight[self._mle]) - self._mle_total()
+
+    # --- outputs -------------------------------------------------------------------------
+
+    def class_probabilities(self) -> dict[str, float]:
+        """{class name: posterior probability}; uniform before there are particles."""
+        if len(self.particles) == 0:
+            return {name: 1.0 / len(self.classes) for name in self.class_names}
+        weights = np.bincount(self.particles.cls, self._normalised_weights(), len(self.classes))
+        return {name: float(w) for name, w in zip(self.class_names, weights, strict=True)}
+
+    def mle_pose(self) -> FloatArray | None:
+        """world_from_object [4, 4] of the MLE particle, or None."""
+        return None if self._mle is None else self.particles.pose(self._mle)
+
+    def mle_class(self) -> ShapeClass | None:
+        return None if self._mle is None else self.classes[int(self.particles.cls[self._mle])]
+
+    def known(self) -> bool | None:
+        """Eq. 28: mean contact likelihood ratio >= rho and mean miss likelihood >= gamma;
+        None until ``decide_after_contacts`` contacts."""
+        if self._mle is None or len(self.contacts) < self.config.decide_after_contacts:
+            return None
+        contact_ok = float(np.exp(self._mle_contact_ll).mean()) >= self.config.known_contact_ratio
+        if len(self.miss_points) == 0:
+            return contact_ok
+        miss_ll = self.log_likelihoods(self.particles.take([self._mle]), self.miss_points, None)
+        return bool(
+            contact_ok and float(np.exp(miss_ll).mean()) >= self.config.known_miss_likelihood
+        )
+
+    def mle_prior(self) -> MlePrior | None:
+        """The MLE (class, pose) as a prior shape in the world frame, or None."""
+        shape, pose = self.mle_class(), self.mle_pose()
+        if shape is None or pose is None:
+            return None
+        return MlePrior(
+            class_name=shape.name,
+            probability=self.class_probabilities()[shape.name],
+            world_from_object=pose,
+            vertices_m=apply_pose(pose, shape.mesh.vertices_m),
+            triangles=shape.mesh.triangles,
+            sdf=transform_sdf(shape.mesh.sdf(), pose),
+        )
+
+    def estimate(self) -> dict[str, Any]:
+        """The current belief: JSON-friendly entries plus ``mle_surface_m`` /
+        ``mle_surface_normals`` ([S, 3] arrays, world frame) for exploration."""
+        shape, pose = self.mle_class(), self.mle_pose()
+        result: dict[str, Any] = {
+            "class_probabilities": self.class_probabilities(),
+            "mle_class": None if shape is None else shape.name,
+            "mle_pose": None if pose is None else pose.tolist(),
+            "particle_count": len(self.particles),
+            "max_particle_count": self.max_particle_count,
+            "known": self.known(),
+            "log_evidence": None if self._mle is None else self._mle_total(),
+            "contact_likelihood": None
+            if self._mle is None
+            else float(np.exp(self._mle_contact_ll).mean()),
+            "contacts": self.contacts.tolist(),
+            "normals": self.normals.tolist(),
+            "misses": len(self.miss_points),
+            "steps": self.steps,
+        }
+        if shape is not None and pose is not None:
+            result["mle_surface_m"] = apply_pose(pose, shape.surface)
+            result["mle_surface_normals"] = shape.surface_normals @ pose[:3, :3].T
+        return result
+
+
+def _feature_samples(mesh: Mesh, count: int) -> tuple[FloatArray, FloatArray]:
+    """``count`` Poisson-disk samples with normals for the PPF table (object frame)."""
+    return mesh.surface_samples(count, seed=0)
