@@ -11,43 +11,26 @@ from __future__ import annotations
 import contextlib
 import os
 import select
-import threading
 import time
-import tty
 
 import numpy as np
 from vistac.plugins.hardware.contactile import protocol
 
+from emulators.pty import PtyDevice
+
 PILLARS = 9
 
 
-class PapillArrayPty:
+class PapillArrayPty(PtyDevice):
     def __init__(self, sensors: int = 2, rate_hz: float = 100.0) -> None:
         self.sensors = sensors
         self.period_s = 1.0 / rate_hz
         self.force_n = np.zeros((sensors, 3))
         self.offset_n = np.zeros((sensors, 3))
         self.corrupt_every = 0
-        self.silent = False
         self.bias_commands = 0
         self.frames_sent = 0
-        self.master, self._slave_fd = os.openpty()
-        self.path = os.ttyname(self._slave_fd)
-        tty.setraw(self._slave_fd)  # no echo or line editing before the plugin opens it
-        os.set_blocking(self.master, False)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._stream, daemon=True)
-
-    def __enter__(self) -> PapillArrayPty:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-        for fd in (self.master, self._slave_fd):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        super().__init__()
 
     def set_force(self, sensor: int, force_n: list[float]) -> None:
         self.force_n[sensor] = force_n
@@ -61,7 +44,7 @@ class PapillArrayPty:
         device_time_us = int(time.monotonic() * 1e6) & 0xFFFFFFFF
         return protocol.encode(protocol.SensorFrame(sensor, device_time_us, pillars, wrench))
 
-    def _stream(self) -> None:
+    def _run(self) -> None:
         next_s = time.monotonic()
         while not self._stop.is_set():
             next_s += self.period_s

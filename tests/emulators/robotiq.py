@@ -16,10 +16,11 @@ import socket
 import struct
 import threading
 import time
-import tty
 
 from vistac.plugins.hardware.robotiq import modbus
 from vistac.plugins.hardware.robotiq.modbus import Status
+
+from emulators.pty import PtyDevice
 
 STROKE_M = 0.085
 CLOSED_POSITION = 230
@@ -95,31 +96,14 @@ class GripperSim:
             )
 
 
-class RobotiqPty:
+class RobotiqPty(PtyDevice):
     """Modbus RTU slave on a pseudo-terminal; ``path`` is the device the plugin opens."""
 
     def __init__(self, gripper: GripperSim | None = None, slave: int = 9) -> None:
         self.gripper = gripper or GripperSim()
         self.slave = slave
         self.corrupt_crc = False
-        self.silent = False
-        self.master, self._slave_fd = os.openpty()
-        self.path = os.ttyname(self._slave_fd)
-        tty.setraw(self._slave_fd)  # no echo or line editing before the plugin opens it
-        os.set_blocking(self.master, False)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, daemon=True)
-
-    def __enter__(self) -> RobotiqPty:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-        for fd in (self.master, self._slave_fd):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        super().__init__()
 
     def _read(self, count: int) -> bytes:
         data = b""
@@ -129,7 +113,7 @@ class RobotiqPty:
                 data += os.read(self.master, count - len(data))
         return data
 
-    def _serve(self) -> None:
+    def _run(self) -> None:
         while not self._stop.is_set():
             head = self._read(2)
             if len(head) < 2:

@@ -16,15 +16,14 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from pydantic import Field, model_validator
-from vistac.component import Component, ComponentConfig, ComponentContext
+from vistac.component import Component, ComponentContext
 from vistac.errors import PluginError, SafetyError
+from vistac.plugins.hardware.limits import AXES, ArmLimits
 from vistac.plugins.hardware.sim.world import MujocoWorld
 from vistac.types import ArmState, FloatArray
 
 log = logging.getLogger(__name__)
 
-_AXES = ("x", "y", "z")
 _BOUNDARY_TOLERANCE_M = 1e-6
 
 
@@ -41,21 +40,8 @@ class SimArm(Component):
 
     kind = "arm"
 
-    class Config(ComponentConfig):
-        max_speed_mps: float = Field(default=0.025, gt=0.0, le=0.25)
-        """Hard cap on the TCP's linear speed (norm of vx, vy, vz)."""
-        max_yaw_rate_rad_s: float = Field(default=0.5, gt=0.0, le=3.0)
-        workspace_min_m: tuple[float, float, float] = (-0.5, 0.15, 0.015)
-        workspace_max_m: tuple[float, float, float] = (0.5, 0.85, 0.5)
-
-        @model_validator(mode="after")
-        def _box(self) -> SimArm.Config:
-            for axis, low, high in zip(
-                _AXES, self.workspace_min_m, self.workspace_max_m, strict=True
-            ):
-                if not low < high:
-                    raise ValueError(f"workspace {axis}: min {low} must be below max {high}")
-            return self
+    class Config(ArmLimits):
+        pass
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
         super().__init__(config, ctx)
@@ -106,7 +92,7 @@ class SimArm(Component):
             self.stop()
             raise SafetyError(
                 f"arm motion refused: it would leave the workspace "
-                f"({_AXES[axis]} {side} = {limit:.3f} m)"
+                f"({AXES[axis]} {side} = {limit:.3f} m)"
             )
 
     def stop(self) -> None:

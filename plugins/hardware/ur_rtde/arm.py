@@ -35,17 +35,17 @@ import time
 from typing import Any
 
 import numpy as np
-from pydantic import Field, model_validator
-from vistac.component import Component, ComponentConfig, ComponentContext
+from pydantic import Field
+from vistac.component import Component, ComponentContext
 from vistac.errors import HardwareError, SafetyError
 from vistac.plugins.hardware.deadline import call_with_deadline
+from vistac.plugins.hardware.limits import AXES, ArmLimits
 from vistac.plugins.hardware.ur_rtde.frames import arm_pose, tcp_pose
 from vistac.plugins.hardware.ur_rtde.probe import probe_controller
 from vistac.types import ArmState, FloatArray
 
 log = logging.getLogger(__name__)
 
-_AXES = ("x", "y", "z")
 _BOUNDARY_TOLERANCE_M = 1e-4
 _ARRIVED_M = 2e-4
 _MOVE_POLL_S = 0.01
@@ -70,15 +70,10 @@ class URArm(Component):
 
     kind = "arm"
 
-    class Config(ComponentConfig):
+    class Config(ArmLimits):
         host: str = "192.168.1.10"
         """The controller's IP address."""
         frequency_hz: float = Field(default=-1.0, description="RTDE rate; -1: the controller's")
-        max_speed_mps: float = Field(default=0.025, gt=0.0, le=0.25)
-        """Hard cap on the TCP's linear speed (norm of vx, vy, vz)."""
-        max_yaw_rate_rad_s: float = Field(default=0.5, gt=0.0, le=3.0)
-        workspace_min_m: tuple[float, float, float] = (-0.5, 0.15, 0.015)
-        workspace_max_m: tuple[float, float, float] = (0.5, 0.85, 0.5)
         acceleration_mps2: float = Field(default=0.5, gt=0.0, le=2.0)
         stop_deceleration_mps2: float = Field(default=2.0, gt=0.0, le=10.0)
         lookahead_s: float = Field(default=0.1, gt=0.0, le=1.0)
@@ -92,15 +87,6 @@ class URArm(Component):
         """RTDE watchdog: the controller stops the arm without input this often (0: off)."""
         upload_script: bool = True
         """Upload ur_rtde's control script (False: an ExternalControl/custom program runs)."""
-
-        @model_validator(mode="after")
-        def _box(self) -> URArm.Config:
-            for axis, low, high in zip(
-                _AXES, self.workspace_min_m, self.workspace_max_m, strict=True
-            ):
-                if not low < high:
-                    raise ValueError(f"workspace {axis}: min {low} must be below max {high}")
-            return self
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
         super().__init__(config, ctx)
@@ -241,7 +227,7 @@ class URArm(Component):
             self.stop()
             raise SafetyError(
                 f"arm motion refused: it would leave the workspace "
-                f"({_AXES[axis]} {side} = {limit:.3f} m)"
+                f"({AXES[axis]} {side} = {limit:.3f} m)"
             )
         lookahead_s = self.config.lookahead_s
         highest = (self._high - position_m) / lookahead_s
@@ -306,7 +292,7 @@ class URArm(Component):
         if np.any(outside):
             axis = int(np.argmax(outside))
             raise SafetyError(
-                f"move target {target[:3].tolist()} is outside the workspace on {_AXES[axis]} "
+                f"move target {target[:3].tolist()} is outside the workspace on {AXES[axis]} "
                 f"([{self._low[axis]:.3f}, {self._high[axis]:.3f}] m)"
             )
         speed = min(speed_mps or self.max_speed_mps, self.max_speed_mps)
