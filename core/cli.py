@@ -89,6 +89,10 @@ def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
         lines.append(text)
     if summary.get("shape"):
         lines += _shape_lines(summary["shape"], summary.get("shape_errors") or {})
+    if summary.get("touch_errors"):
+        lines.append(_touch_line(summary.get("touch") or {}, summary["touch_errors"]))
+    if summary.get("learned_shape"):
+        lines.append(_learned_line(summary["learned_shape"]))
     if summary.get("belief"):
         lines.append(
             _belief_table(
@@ -97,6 +101,28 @@ def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
         )
     lines.append(f"  data: {out_dir}/ (run.json, summary.json, episodes/, views/)")
     return "\n".join(lines)
+
+
+def _touch_line(touch: dict[str, Any], errors: dict[str, Any]) -> str:
+    """The touch result: most likely class, whether it is right, the pose error, steps."""
+    verdict = "right" if errors.get("class_correct") else "wrong"
+    pose_mm = 1e3 * float(errors.get("pose_error_m", float("nan")))
+    return (
+        f"  touch: {touch.get('mle_class')} ({verdict} class), pose error {pose_mm:.1f} mm, "
+        f"{errors.get('steps')} touches, at most {errors.get('max_particle_count')} particles"
+    )
+
+
+def _learned_line(record: dict[str, Any]) -> str:
+    """Where the learned shape went and its reconstruction error, or why it was not saved."""
+    if not record.get("saved"):
+        return f"  learned shape: not saved ({record.get('reason')})"
+    text = f"  learned shape: saved to {record.get('path')}"
+    if record.get("reconstruction_error_m") is not None:
+        text += f", TWD to the true shape {1e3 * record['reconstruction_error_m']:.1f} mm"
+    if record.get("poisson_error_m") is not None:
+        text += f" (screened Poisson {1e3 * record['poisson_error_m']:.1f} mm)"
+    return text
 
 
 def _shape_lines(shape: dict[str, Any], errors: dict[str, Any]) -> list[str]:

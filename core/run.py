@@ -64,7 +64,13 @@ class WallClock:
             time.sleep(remaining_s)
             return
         self.overruns += 1
-        log.warning("control period overrun by %.1f ms", -remaining_s * 1e3)
+        if self.overruns == 1:
+            log.warning(
+                "control period overrun by %.1f ms; later overruns are logged at debug level "
+                "and counted in summary.json (control_overruns)", -remaining_s * 1e3,
+            )  # fmt: skip
+        else:
+            log.debug("control period overrun by %.1f ms", -remaining_s * 1e3)
         self.deadline_s = time.monotonic()
 
 

@@ -158,6 +158,7 @@ class Scheduler:
             "seed": self.seed,
             "wall_time_s": wall_s,
             "sim_time_s": self.ctx.time_s if isinstance(self.ctx.clock, SimClock) else None,
+            "control_overruns": getattr(self.ctx.clock, "overruns", None),
             "ticks": self.ticks,
             "views": self.recorder.views,
             "episodes": self.recorder.episodes,

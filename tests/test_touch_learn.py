@@ -151,7 +151,8 @@ def test_short_touch_learn_run_saves_and_measures_the_shape(
                         "tree.sequence.1.learn_shape.only_novel=false")  # fmt: skip
     record = summary["learned_shape"]
     assert record["saved"] and record["steps"] == 50
-    assert Path(record["path"]) == tmp_path / "run" / "learned" / "chair_armchair_learned.ply"
+    learned = f"{record['prior_class']}_learned.ply"  # the default name
+    assert Path(record["path"]) == tmp_path / "run" / "learned" / learned
     load_mesh(record["path"], size_m=None)  # watertight
     assert 0.0 < record["reconstruction_error_m"] < 0.15
     assert record["poisson_error_m"] > 0.0

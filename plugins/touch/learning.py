@@ -168,8 +168,9 @@ class LearnShape(SkillBehaviour):
         directory: SkillPath | None = Field(
             None, description="where learned shapes go (relative to the skill file); "
             "default: OUT/learned of the run")
-        name: str = Field("learned", pattern=r"^[A-Za-z0-9_.-]+$",
-                          description="class name = file stem")
+        name: str | None = Field(None, pattern=r"^[A-Za-z0-9_.-]+$",
+                                 description="class name = file stem; default: the most "
+                                 "likely known class + '_learned'")
         only_novel: bool = True
 
     def update(self) -> Status:
@@ -185,7 +186,8 @@ class LearnShape(SkillBehaviour):
             surface = self.component("surface").reconstruction()
             pose = mle.world_from_object if mle is not None else centred_pose(surface.vertices_m)
             directory = self.config.directory or self.run.info.out_dir / "learned"
-            path = save_learned_shape(surface, directory, self.config.name, pose)
+            name = self.config.name or f"{getattr(mle, 'class_name', 'shape')}_learned"
+            path = save_learned_shape(surface, directory, name, pose)
             record.update(saved=True, path=str(path), class_name=path.stem,
                           world_from_saved=np.asarray(pose).tolist(),
                           triangles=len(surface.triangles))  # fmt: skip
