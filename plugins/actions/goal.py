@@ -19,6 +19,7 @@ from py_trees.common import Status
 from pydantic import Field
 from vistac.component import ComponentConfig
 from vistac.errors import DataError
+from vistac.plugins.actions.icem import wrap_angle
 from vistac.protocols import Scene
 from vistac.tree import SkillBehaviour
 from vistac.types import FloatArray, GaussianBelief
@@ -33,10 +34,6 @@ def link0_pose(belief: GaussianBelief) -> FloatArray:
         return np.array([belief.mean[index[name]] for name in ("x_0", "y_0", "theta_0")])
     except KeyError:
         raise DataError("goal pushing needs a belief over the link poses (filters.dual)") from None
-
-
-def _wrap(angle_rad: float) -> float:
-    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
 
 
 class PlanPush(SkillBehaviour):
@@ -115,7 +112,7 @@ class GoalReached(SkillBehaviour):
     def update(self) -> Status:
         pose, goal = link0_pose(self.read("belief")), np.asarray(self.read("goal"))
         position_error_m = float(np.linalg.norm(pose[:2] - goal[:2]))
-        turn_error_rad = abs(_wrap(float(pose[2] - goal[2])))
+        turn_error_rad = abs(float(wrap_angle(pose[2] - goal[2])))
         record = self.run.results["goal_push"]
         record.update(believed_error_m=position_error_m, believed_turn_error_rad=turn_error_rad)
         self._true_errors(record, goal)
@@ -133,8 +130,8 @@ class GoalReached(SkillBehaviour):
             return
         true_pose = np.asarray(truth, dtype=np.float64)[0]
         point = true_pose[:2] + _rotate(np.asarray(record["tracked_point_in_link_m"]), true_pose[2])
-        turn = _wrap(float(true_pose[2] - record["start_true_pose"][2]))
-        goal_turn = _wrap(float(goal[2] - record["start_belief_pose"][2]))
+        turn = float(wrap_angle(true_pose[2] - record["start_true_pose"][2]))
+        goal_turn = float(wrap_angle(goal[2] - record["start_belief_pose"][2]))
         record["true_final_xy"] = point.tolist()
         record["true_error_m"] = float(np.linalg.norm(point - goal[:2]))
-        record["true_turn_error_rad"] = abs(_wrap(turn - goal_turn))
+        record["true_turn_error_rad"] = abs(float(wrap_angle(np.asarray(turn - goal_turn))))
