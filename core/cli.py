@@ -105,10 +105,13 @@ def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
 
 def _touch_line(touch: dict[str, Any], errors: dict[str, Any]) -> str:
     """The touch result: most likely class, whether it is right, the pose error, steps."""
+    if touch.get("mle_class") is None:
+        return f"  touch: nothing recognised in {errors.get('steps')} touches"
     verdict = "right" if errors.get("class_correct") else "wrong"
-    pose_mm = 1e3 * float(errors.get("pose_error_m", float("nan")))
+    pose_m = errors.get("pose_error_m")
+    pose = "no pose" if pose_m is None else f"pose error {1e3 * pose_m:.1f} mm"
     return (
-        f"  touch: {touch.get('mle_class')} ({verdict} class), pose error {pose_mm:.1f} mm, "
+        f"  touch: {touch.get('mle_class')} ({verdict} class), {pose}, "
         f"{errors.get('steps')} touches, at most {errors.get('max_particle_count')} particles"
     )
 
