@@ -314,13 +314,16 @@ class ShapeEstimate:
 
     links: one superquadric per link; initial_poses: [L, 3] = (x_m, y_m, theta_rad) per link;
     uncertainty: [L, K] per-link parameter standard deviations (K estimator-specific);
-    cloud: the segmented object point cloud the estimate was fitted to.
+    cloud: the segmented object point cloud the estimate was fitted to; covariance: [L, K, K]
+    per-link parameter covariance (diagonal = uncertainty**2), or None where the estimator
+    gives standard deviations only.
     """
 
     links: tuple[Superquadric, ...]
     initial_poses: FloatArray
     uncertainty: FloatArray
     cloud: PointCloud
+    covariance: FloatArray | None = None
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,9 @@ from vistac.plugins.shape.nbv import (
     RandomViews,
     gaussian_entropy,
     look_at,
+    normal_displacements,
     parameter_displacements,
+    surface_entropy,
     surface_normals,
     visible_points,
 )
@@ -222,6 +224,65 @@ def test_pose_and_scale_std_propagate_exactly() -> None:
     np.testing.assert_allclose(others, 0.0, atol=1e-12)
     entropy = gaussian_entropy(displacement[[x]], np.zeros(2), SETTINGS)
     np.testing.assert_allclose(entropy, 0.5 * np.log(1 + (0.004 / 0.002) ** 2))
+
+
+def test_a_circle_turning_about_its_axis_is_certain() -> None:
+    """Yaw moves the points of a circular cylinder along its surface only: no entropy."""
+    cylinder = Superquadric(np.array([0.04, 0.04, 0.025]), np.array([0.1, 1.0]),
+                            box().world_from_sq, np.zeros(2))
+    points = sample_surface(cylinder, 500, np.random.default_rng(2))
+    local = to_superquadric_frame(cylinder, points)
+    std = np.zeros(len(PARAMETER_NAMES))
+    std[PARAMETER_NAMES.index("yaw_rad")] = 0.3
+    moved = parameter_displacements(cylinder, local, std)
+    assert np.abs(moved).max() > 0.005  # the points do slide
+    along = normal_displacements(moved, surface_normals(cylinder, local))
+    np.testing.assert_allclose(along, 0.0, atol=1e-6)
+
+
+def test_correlated_parameters_count_once() -> None:
+    """x and y perfectly anti-correlated with equal std (the box slides along x = -y): the
+    positional spread of each point is that of the joint move, not of two separate ones."""
+    sq = box()
+    cloud = observed(sq)
+    std = np.zeros((1, len(PARAMETER_NAMES)))
+    x, y = PARAMETER_NAMES.index("x_m"), PARAMETER_NAMES.index("y_m")
+    std[0, [x, y]] = 0.003
+    cov = np.zeros((1, len(PARAMETER_NAMES), len(PARAMETER_NAMES)))
+    cov[0, [x, y, x, y], [x, y, y, x]] = [9e-6, 9e-6, -9e-6, -9e-6]
+    poses = np.array([[CENTRE_XY_M[0], CENTRE_XY_M[1], 0.0]])
+    settings = EntropySettings(0.005, 0.02, 0.002)
+
+    def entropy(covariance: np.ndarray | None) -> np.ndarray:
+        shape = ShapeEstimate((sq,), poses, std, cloud, covariance)
+        points, normals, value = surface_entropy(shape, cloud.points_m, 400,
+                                                 np.random.default_rng(1), settings)
+        return np.asarray(points), np.asarray(normals), np.asarray(value)
+
+    points, normals, correlated = entropy(cov)
+    _, _, independent = entropy(None)
+    joint = 0.003 * (normals[:, 0] - normals[:, 1])  # the normal part of the move (d, -d)
+    expected = 0.5 * np.log1p(joint**2 / 0.002**2)
+    seen = (np.abs(normals[:, 2]) < 0.5) & (points[:, 2] > 0.01)  # the walls the cloud shows
+    np.testing.assert_allclose(correlated[seen], expected[seen], atol=1e-9)
+    assert independent[seen].mean() > correlated[seen].mean()
+
+
+def test_points_below_the_table_clearance_count_as_seen() -> None:
+    """The cloud never has points below the clearance; a wall point down there is seen when
+    the wall above it is."""
+    sq = box()
+    cloud = observed(sq, keep=lambda p: p[:, 2] > 0.008)
+    shape = estimate((sq,), cloud, std=0.0)
+    low = EntropySettings(0.005, 0.02, 0.002, table_clearance_m=0.0)
+    raised = EntropySettings(0.005, 0.02, 0.002, table_clearance_m=0.008)
+    rng = np.random.default_rng(3)
+    points, normals, without = surface_entropy(shape, cloud.points_m, 2000, rng, low)
+    _, _, with_clearance = surface_entropy(shape, cloud.points_m, 2000,
+                                           np.random.default_rng(3), raised)
+    wall_bottom = (points[:, 2] < 0.002) & (np.abs(normals[:, 2]) < 0.5)
+    assert wall_bottom.any() and without[wall_bottom].min() > 0.2
+    np.testing.assert_allclose(with_clearance[wall_bottom], 0.0, atol=1e-9)
 
 
 def test_unseen_points_get_the_capped_entropy() -> None:

@@ -96,7 +96,7 @@ _DENSITY_NEIGHBOURS = 8
 _DENSITY_KEEP_RATIO = 2.0
 _AREA_NOISE_CAP_M = 0.002
 _EXCLUSION_LEVELS = (0.25, 0.5, 0.75)
-_EXCLUSION_POINTS = 300
+_EXCLUSION_POINTS = 100
 _EXCLUSION_WEIGHT = 1.0
 
 IntArray = NDArray[np.int64]
@@ -123,12 +123,14 @@ class EMSResult:
     """One fitted superquadric.
 
     params: [14] in ``PARAMETER_NAMES`` order; std: [14] standard deviations (0 where the
-    parameter is fixed by the model); inlier_probability: [N] posterior of eq. 9 per point.
+    parameter is fixed by the model); covariance: [14, 14]; inlier_probability: [N] posterior
+    of eq. 9 per point.
     """
 
     superquadric: Superquadric
     params: FloatArray
     std: FloatArray
+    covariance: FloatArray
     inlier_probability: FloatArray
     noise_m: float
     nll: float
@@ -510,12 +512,17 @@ def _switch(problem: _Problem, state: _State) -> _State | None:
 
 
 def _run_ems(problem: _Problem, params: FloatArray, max_iterations: int,
-             max_switches: int) -> _State:
+             max_switches: int, noise_var_m2: float | None = None) -> _State:
     """EM from params [14] until the likelihood stops improving, with up to ``max_switches``
-    S-steps."""
-    distance = problem.distances(params[None])[0]
-    noise_var = _noise_var(problem, distance, np.ones_like(distance))
-    state = _State(params, noise_var, float(problem.nll(params[None], noise_var)[0]))
+    S-steps. The noise variance starts at ``noise_var_m2`` (a coarser fit's) or, without it,
+    from the closest 1 - w0 of the points (w0 the outlier ratio): counting the outliers too
+    would start EM so loose that it spreads the shape into the unseen side of a partial
+    view."""
+    if noise_var_m2 is None:
+        distance = problem.distances(params[None])[0]
+        inlier = distance <= np.quantile(distance, 1 - problem.options.outlier_ratio)
+        noise_var_m2 = _noise_var(problem, distance, inlier)
+    state = _State(params, noise_var_m2, float(problem.nll(params[None], noise_var_m2)[0]))
     switches = 0
     tolerance = problem.options.tolerance_nats * len(problem.points_m)
     for _ in range(max_iterations):
@@ -534,19 +541,21 @@ def _run_ems(problem: _Problem, params: FloatArray, max_iterations: int,
     return state
 
 
-def _parameter_std(problem: _Problem, params: FloatArray, weights: FloatArray,
-                   noise_var_m2: float) -> FloatArray:
-    """Standard deviations [14] from the Jacobian at the optimum: sqrt(diag((J^T J)^-1) s^2)."""
+def _parameter_covariance(problem: _Problem, params: FloatArray, weights: FloatArray,
+                          noise_var_m2: float) -> FloatArray:
+    """Covariance [14, 14] from the Jacobian at the optimum, (J^T J)^-1 s^2; zero rows and
+    columns for fixed parameters (on a table z = a3, so z copies a3's)."""
     residuals = _Residuals(problem, params, weights, noise_var_m2)
     jac = residuals.jacobian(params[problem.free])
     residual = residuals(params[problem.free])[:-1]
     dof = max(float(weights.sum()) - len(problem.free), 1.0)
-    cov = np.linalg.pinv(jac.T @ jac) * float(residual @ residual) / dof
-    std = np.zeros(len(PARAMETER_NAMES))
-    std[problem.free] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    free_cov = np.linalg.pinv(jac.T @ jac) * float(residual @ residual) / dof
+    cov = np.zeros((len(PARAMETER_NAMES), len(PARAMETER_NAMES)))
+    cov[np.ix_(problem.free, problem.free)] = 0.5 * (free_cov + free_cov.T)
     if problem.on_table:
-        std[_Z] = std[_A3]
-    return std
+        cov[_Z, :], cov[:, _Z] = cov[_A3, :], cov[:, _A3]
+        cov[_Z, _Z] = cov[_A3, _A3]
+    return cov
 
 
 def _canonical(params: FloatArray, options: EMSOptions) -> FloatArray:
@@ -564,8 +573,10 @@ def _canonical(params: FloatArray, options: EMSOptions) -> FloatArray:
 
 
 def fit_superquadric(points_m: FloatArray, options: EMSOptions,
-                     excluded_m: FloatArray | None = None) -> EMSResult:
-    """Fit one (tapered) superquadric to points [N, 3] (N >= 10, finite) by EMS.
+                     excluded_m: FloatArray | None = None,
+                     initial: EMSResult | None = None) -> EMSResult:
+    """Fit one (tapered) superquadric to points [N, 3] (N >= 10, finite) by EMS: from the
+    points' extent, or warm-started from ``initial`` (its parameters and noise, no switching).
 
     EM with switching runs on a fixed random subset of ``_COARSE_FIT_POINTS``, then at most
     ``_FINE_ITERATIONS`` EM iterations refine it on ``max_fit_points`` (a superset); the
@@ -574,18 +585,22 @@ def fit_superquadric(points_m: FloatArray, options: EMSOptions,
     order = np.random.default_rng(0).permutation(len(points_m))
     subset = points_m[order[: options.max_fit_points]]
     coarse = subset[: min(_COARSE_FIT_POINTS, len(subset))]
-    state = _run_ems(_make_problem(coarse, options, excluded_m),
-                     _initial_params(subset, options.on_table), options.max_iterations,
-                     options.max_switches)
+    problem = _make_problem(coarse, options, excluded_m)
+    if initial is None:
+        state = _run_ems(problem, _initial_params(subset, options.on_table),
+                         options.max_iterations, options.max_switches)
+    else:
+        state = _run_ems(problem, initial.params, options.max_iterations, 0,
+                         initial.noise_m**2)
     if len(subset) > len(coarse):
         state = _run_ems(_make_problem(subset, options, excluded_m), state.params,
-                         _FINE_ITERATIONS, 0)
+                         _FINE_ITERATIONS, 0, state.noise_var_m2)
     params = _canonical(state.params, options)
     problem = _make_problem(points_m, options)
     weights = problem.posterior(problem.distances(params[None])[0], state.noise_var_m2)
-    return EMSResult(to_superquadric(params), params, _parameter_std(problem, params, weights,
-                                                                  state.noise_var_m2),
-                     weights, float(np.sqrt(state.noise_var_m2)), state.nll)
+    cov = _parameter_covariance(problem, params, weights, state.noise_var_m2)
+    return EMSResult(to_superquadric(params), params, np.sqrt(np.clip(np.diag(cov), 0.0, None)),
+                     cov, weights, float(np.sqrt(state.noise_var_m2)), state.nll)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -603,9 +618,15 @@ def largest_cluster(points_m: FloatArray, radius_m: float) -> IntArray:
 
 
 def fit_links(points_m: FloatArray, options: EMSOptions, max_links: int,
-              outlier_threshold_points: int, cluster_radius_m: float) -> list[EMSResult]:
+              outlier_threshold_points: int, cluster_radius_m: float,
+              previous: list[EMSResult] | None = None) -> list[EMSResult]:
     """Fit superquadrics to points [N, 3], one more at a time while the model selection of
     :func:`_evidence_gain` prefers it (at most ``max_links``).
+
+    With the links of an earlier fit of the same object (``previous``, the last view), those
+    links are also refitted, each from where it was, and kept when they explain the points
+    better than the search's result: the split found from one view's seam can be poor in the
+    next, and a good split found earlier is not lost.
 
     Each step tries, in turn, to split the largest link where the view from above shows a
     seam (:func:`_split_labels`) and to add a link on the largest cluster of unexplained points
@@ -619,6 +640,11 @@ def fit_links(points_m: FloatArray, options: EMSOptions, max_links: int,
         if proposal is None:
             break
         links = proposal
+    if previous is not None and 1 < len(previous) <= max_links:
+        again = _fit_jointly(points_m, _assign(points_m, previous), options, _REFIT_ROUNDS,
+                             previous)
+        if again is not None and _evidence_gain(points_m, links, again, options) > 0:
+            return again
     return links
 
 
@@ -633,7 +659,8 @@ def _best_proposal(points_m: FloatArray, links: list[EMSResult], options: EMSOpt
         proposal = _fit_jointly(points_m, labels, options, 1)
         if proposal is None or _evidence_gain(points_m, links, proposal, options) <= threshold:
             continue
-        refined = _fit_jointly(points_m, _assign(points_m, proposal), options, _REFIT_ROUNDS)
+        refined = _fit_jointly(points_m, _assign(points_m, proposal), options, _REFIT_ROUNDS,
+                               proposal)
         if refined is not None and (_evidence_gain(points_m, links, refined, options)
                                     > threshold):
             logger.debug("EMS: %d links accepted", len(refined))
@@ -784,21 +811,23 @@ def _evidence_gain(points_m: FloatArray, links: list[EMSResult], proposal: list[
             - 0.5 * extra * np.log(len(points_m)))
 
 
-def _fit_jointly(points_m: FloatArray, labels: IntArray, options: EMSOptions,
-                 rounds: int) -> list[EMSResult] | None:
+def _fit_jointly(points_m: FloatArray, labels: IntArray, options: EMSOptions, rounds: int,
+                 initial: list[EMSResult] | None = None) -> list[EMSResult] | None:
     """Links fitted to the points [N, 3] of each label [N] (0 .. K-1), then for ``rounds`` - 1
     more rounds each point is given to the link of highest surface density and the links are
-    refitted; None when a link is left with fewer than ``_MIN_LINK_POINTS``."""
-    links: list[EMSResult] = []
+    refitted, each from its previous fit (the first round from ``initial`` when given, one
+    link per label); None when a link is left with fewer than ``_MIN_LINK_POINTS``."""
+    links: list[EMSResult] | None = initial
     for round_index in range(rounds):
         if round_index:
-            labels = _assign(points_m, links)
+            labels = _assign(points_m, links or [])
         counts = np.bincount(labels, minlength=int(labels.max()) + 1)
         if counts.min() < _MIN_LINK_POINTS:
             return None
-        links = [_over_all_points(fit_superquadric(points_m[labels == k], options,
-                                                   _hidden_volume(points_m[labels != k], options)),
-                                  points_m, options) for k in range(len(counts))]
+        links = [_over_all_points(fit_superquadric(
+            points_m[labels == k], options, _hidden_volume(points_m[labels != k], options),
+            None if links is None else links[k]), points_m, options)
+            for k in range(len(counts))]
     return links
 
 
@@ -828,7 +857,10 @@ def _over_all_points(link: EMSResult, points_m: FloatArray, options: EMSOptions)
 
 
 class EMSEstimator(Component):
-    """Superquadric shape estimator ``shape.ems`` (one superquadric per link)."""
+    """Superquadric shape estimator ``shape.ems`` (one superquadric per link).
+
+    Successive fits (the growing cloud of one perception) start from the links of the last
+    fit where it found more than one (see :func:`fit_links`)."""
 
     kind = "shape_estimator"
 
@@ -859,12 +891,15 @@ class EMSEstimator(Component):
             on_table=config.on_table,
             max_fit_points=config.max_fit_points,
         )
+        self._previous_links: list[EMSResult] | None = None
 
     def fit(self, cloud: PointCloud) -> ShapeEstimate:
         """Fit the object in ``cloud`` (world frame, table at z = 0 may be included)."""
         points = self._object_points(cloud)
         links = fit_links(points, self.options, self.config.max_links,
-                          self.config.outlier_threshold_points, self.config.cluster_radius_m)
+                          self.config.outlier_threshold_points, self.config.cluster_radius_m,
+                          self._previous_links)
+        self._previous_links = links
         inlier = np.max([link.inlier_probability for link in links], axis=0) >= 0.5
         logger.info("EMS: %d link(s) from %d points, %d inliers", len(links), len(points),
                     int(inlier.sum()))
@@ -873,6 +908,7 @@ class EMSEstimator(Component):
             initial_poses=np.array([link.params[[_X, _Y, _YAW]] for link in links]),
             uncertainty=np.array([link.std for link in links]),
             cloud=PointCloud(points[inlier]),
+            covariance=np.array([link.covariance for link in links]),
         )
 
     def _object_points(self, cloud: PointCloud) -> FloatArray:

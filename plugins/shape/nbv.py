@@ -7,13 +7,16 @@ and the camera with the most is chosen.
 
 Point entropy. Each sampled point j gets a Gaussian positional spread, covariance [3, 3]
 
-    Sigma_j = sum_k D_jk D_jk^T + u_j^2 I,
+    Sigma_j = sum_kl D_jk R_kl D_jl^T + u_j^2 I,
 
-where D_jk [3] is the point's displacement when parameter k of its superquadric moves by one
-standard deviation (central finite differences, ``ShapeEstimate.uncertainty`` in the
-``PARAMETER_NAMES`` order of ``shape.ems``), and u_j is the unseen spread of eq. 10-11: the
-nearest-neighbour distance to the observed cloud beyond ``seen_distance_m``, capped at
-``unseen_spread_m``. The entropy is that of the spread above the sensor noise sigma_n,
+where D_jk [3] is the normal part of the point's displacement when parameter k of its
+superquadric moves by one standard deviation (central finite differences,
+``ShapeEstimate.uncertainty`` in the ``PARAMETER_NAMES`` order of ``shape.ems``; a slide along
+the surface does not change the shape), R the parameters' correlation matrix
+(``ShapeEstimate.covariance``; the identity without one), and u_j is the unseen spread of
+eq. 10-11: the nearest-neighbour distance to the observed cloud beyond ``seen_distance_m``,
+capped at ``unseen_spread_m`` (points below the table clearance are compared as if at it,
+since the cloud has none there). The entropy is that of the spread above the sensor noise sigma_n,
 
     H_j = h(N(0, Sigma_j + sigma_n^2 I)) - h(N(0, sigma_n^2 I))
         = 0.5 log det(I + Sigma_j / sigma_n^2),
@@ -261,7 +264,8 @@ class EntropyNBV(Component):
 
     def _entropy_settings(self) -> EntropySettings:
         cfg = self.config
-        return EntropySettings(cfg.seen_distance_m, cfg.unseen_spread_m, cfg.sensor_noise_m)
+        return EntropySettings(cfg.seen_distance_m, cfg.unseen_spread_m, cfg.sensor_noise_m,
+                               cfg.table_clearance_m)
 
     def _near_taken(self, directions: FloatArray) -> FloatArray:
         """Mask [P] of candidate directions [P, 3] too close to a view returned before."""
@@ -279,6 +283,9 @@ class EntropySettings:
     seen_distance_m: float
     unseen_spread_m: float
     sensor_noise_m: float
+    table_clearance_m: float = 0.0
+    """The cloud has no points below this height: a surface point lower down is compared with
+    the cloud as if it were at this height."""
 
 
 def surface_entropy(
@@ -294,13 +301,16 @@ def surface_entropy(
     normals [L*M, 3] and entropy [L*M] in nats (M = ``points_per_link``).
     """
     std = _parameter_std(shape)
+    roots = _correlation_roots(shape, std)
     points, normals, displacements = [], [], []
-    for sq, link_std in zip(shape.links, std, strict=True):
+    for sq, link_std, root in zip(shape.links, std, roots, strict=True):
         world_m = sample_surface(sq, points_per_link, rng)
         local_m = to_superquadric_frame(sq, world_m)
+        normal = surface_normals(sq, local_m)
         points.append(world_m)
-        normals.append(surface_normals(sq, local_m))
-        displacements.append(parameter_displacements(sq, local_m, link_std))
+        normals.append(normal)
+        moved = normal_displacements(parameter_displacements(sq, local_m, link_std), normal)
+        displacements.append(np.einsum("kl,kmi->lmi", root, moved))
     points_m = np.concatenate(points)
     unseen_m = _unseen_spread_m(points_m, observed_m, settings)
     entropy = gaussian_entropy(np.concatenate(displacements, axis=1), unseen_m, settings)
@@ -321,13 +331,31 @@ def _parameter_std(shape: ShapeEstimate) -> FloatArray:
     return std
 
 
+def _correlation_roots(shape: ShapeEstimate, std: FloatArray) -> FloatArray:
+    """Per link a square root S [K, K] of the parameters' correlation matrix (S S^T = R), so
+    that displacements mixed by S add up to D R D^T: parameters that trade off against each
+    other (yaw and shear of an ellipse) do not count twice. Identity without a covariance.
+    Returns [L, K, K]."""
+    count = std.shape[1]
+    cov = shape.covariance
+    if cov is None or np.shape(cov) != (len(shape.links), count, count):
+        return np.broadcast_to(np.eye(count), (len(shape.links), count, count))
+    scale = np.where(std > 0, std, 1.0)
+    correlation = np.asarray(cov) / (scale[:, :, None] * scale[:, None, :])
+    values, vectors = np.linalg.eigh(0.5 * (correlation + np.swapaxes(correlation, 1, 2)))
+    return np.asarray(vectors * np.sqrt(np.clip(values, 0.0, None))[:, None, :])
+
+
 def _unseen_spread_m(
     points_m: FloatArray, observed_m: FloatArray, settings: EntropySettings
 ) -> FloatArray:
-    """u_j [M]: nearest-neighbour distance beyond ``seen_distance_m``, capped (eq. 11)."""
+    """u_j [M]: nearest-neighbour distance beyond ``seen_distance_m``, capped (eq. 11); points
+    [M, 3] below the table clearance are raised to it first (the cloud cannot show them)."""
     if len(observed_m) == 0:
         return np.full(len(points_m), settings.unseen_spread_m)
-    distance_m, _ = cKDTree(observed_m).query(points_m)
+    raised_m = points_m.copy()
+    raised_m[:, 2] = np.maximum(raised_m[:, 2], settings.table_clearance_m)
+    distance_m, _ = cKDTree(observed_m).query(raised_m)
     return np.clip(distance_m - settings.seen_distance_m, 0.0, settings.unseen_spread_m)
 
 
@@ -366,6 +394,14 @@ def parameter_displacements(sq: Superquadric, local_m: FloatArray, std: FloatArr
     world = np.matmul(local, np.swapaxes(rotation, 1, 2)) + translation_m[:, None, :]
     count = len(std)
     return np.asarray(0.5 * (world[:count] - world[count:]))
+
+
+def normal_displacements(displacements_m: FloatArray, normals: FloatArray) -> FloatArray:
+    """The part [K, M, 3] of displacements [K, M, 3] along the unit normals [M, 3]: a point
+    that slides along the surface (a circle turning about its axis) leaves the surface where
+    it was, so only the normal part is uncertainty about the shape."""
+    along = np.einsum("kmi,mi->km", displacements_m, normals)
+    return np.asarray(along[:, :, None] * normals[None, :, :])
 
 
 def _columns(names: tuple[str, ...]) -> list[int]:
