@@ -238,9 +238,12 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from vistac.plugins.filters.evaluate import EvalOptions, evaluate, parse_models
+    from vistac.plugins.touch.campaign import is_touch_skill
 
     if not args.skill.is_file():
         raise ConfigError(f"{args.skill}: no such skill file")
+    if is_touch_skill(args.skill):
+        return _eval_touch(args)
     options = EvalOptions(
         skill=args.skill, out=args.out, objects=tuple(args.objects),
         checkpoints=args.checkpoints, models=parse_models(args.models),
@@ -256,6 +259,26 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(f"{run['status']}: {run['variant']} on {run['object']}: {run['reason']}")
     print(f"evaluated {len(report['runs']) - len(skipped)} runs; eval.json, tables and plots "
           f"in {args.out}")  # fmt: skip
+    return 0
+
+
+def _eval_touch(args: argparse.Namespace) -> int:
+    from vistac.plugins.touch.campaign import TouchEvalOptions, evaluate_touch, parse_explorers
+
+    objects = ("known",) if args.objects == ["test"] else tuple(args.objects)
+    options = TouchEvalOptions(
+        skill=args.skill, out=args.out, objects=objects, trials=args.trials,
+        explorers=parse_explorers(args.explorers),
+        seed=args.seed if args.seed is not None else 0, overrides=tuple(args.set),
+    )  # fmt: skip
+    report = evaluate_touch(options)
+    print((args.out / "tables.md").read_text(encoding="utf-8"))
+    failed = [r for r in report["records"] if r["status"] != "ok"]
+    for record in failed:
+        print(f"failed: {record['explorer']} on {record['object']} trial {record['trial']}: "
+              f"{record['reason']}")
+    print(f"evaluated {len(report['records']) - len(failed)} touch runs; eval.json and "
+          f"tables.md in {args.out}")
     return 0
 
 
@@ -321,12 +344,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     train.set_defaults(func=cmd_train)
 
-    evaluate = sub.add_parser("eval", help="compare the process models on a set of objects")
+    evaluate = sub.add_parser(
+        "eval", help="compare the process models on a set of objects, or, for a touch skill, "
+        "recognition over objects x random poses x explorers",
+    )  # fmt: skip
     evaluate.add_argument("skill", type=Path, help="the exploration skill, e.g. explore_push.yaml")
     evaluate.add_argument("--out", type=Path, required=True, help="evaluation folder")
     evaluate.add_argument(
         "--objects", nargs="+", default=["test"], metavar="SPLIT|YAML",
-        help="test, val, train (the generated set) or object YAML files",
+        help="test, val, train (the generated set) or object YAML files; for touch skills "
+        "known, novel, class names or mesh files (default known)",
     )  # fmt: skip
     evaluate.add_argument(
         "--checkpoints",
@@ -341,6 +368,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-interactions", type=int, default=None, help="cap on interactions per run"
     )
     evaluate.add_argument("--seed", type=int, default=None, help="override the skill's seed")
+    evaluate.add_argument(
+        "--trials", type=int, default=10,
+        help="touch skills: random poses per object (seeds SEED .. SEED + N - 1)",
+    )  # fmt: skip
+    evaluate.add_argument(
+        "--explorers", default="dhd,rrt", help="touch skills: comma-separated, dhd and/or rrt"
+    )
     _add_skill_options(evaluate)
     evaluate.set_defaults(func=cmd_eval)
 

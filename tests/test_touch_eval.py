@@ -1,0 +1,82 @@
+"""`vistac eval` on a touch skill: objects x random poses x explorers, scored and tabulated."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from vistac.cli import main
+from vistac.plugins.touch.campaign import aggregate, is_touch_skill
+
+SKILLS = Path(__file__).resolve().parents[1] / "skills"
+SKILL = SKILLS / "touch_recognise.yaml"
+FAST = ["--set", "rate_hz=500", "--set", "tree.sequence.0.explore_touch.max_touches=25"]
+
+
+def _record(**fields: object) -> dict[str, object]:
+    base: dict[str, object] = {"status": "ok", "is_known": True, "class_correct": True,
+                               "steps_to_pose": None, "steps": 50, "stopped_by": "explorer",
+                               "known": True, "max_particle_count": 100}  # fmt: skip
+    return base | fields
+
+
+def test_aggregate_counts_and_means() -> None:
+    row = aggregate([
+        _record(steps_to_pose=10, steps=40),
+        _record(steps_to_pose=20, steps=60, stopped_by="max_touches", max_particle_count=900),
+        _record(class_correct=False, known=False),
+        _record(is_known=False, class_correct=False, known=False),
+        {"status": "failed", "is_known": True, "reason": "exit code 1"},
+    ])  # fmt: skip
+    assert row["trials"] == 5 and row["failed"] == 1 and row["known_trials"] == 3
+    assert row["class_right"] == 2 and row["pose_found"] == 2
+    assert row["touches_to_pose"] == 15.0 and row["touches_to_stop"] == 50.0
+    assert row["terminated"] == 3 and row["max_particles"] == 900
+    assert (row["decision_right"], row["decided"]) == (3, 4)
+
+
+def test_only_touch_skills_take_the_touch_evaluation() -> None:
+    assert is_touch_skill(SKILL) and is_touch_skill(SKILLS / "touch_learn.yaml")
+    assert not is_touch_skill(SKILLS / "explore_push.yaml")
+
+
+def test_eval_runs_every_trial_and_writes_the_tables(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["-q", "eval", str(SKILL), "--objects", "mug", "mug_tall", "--trials", "1",
+            "--explorers", "dhd", "--out", str(tmp_path), *FAST]  # fmt: skip
+    assert main(args) == 0
+    report = json.loads((tmp_path / "eval.json").read_text(encoding="utf-8"))
+    records = {r["object"]: r for r in report["records"]}
+    assert set(records) == {"mug", "mug_tall"}
+    assert all(r["status"] == "ok" for r in records.values())
+    assert records["mug"]["is_known"] and not records["mug_tall"]["is_known"]
+    assert records["mug"]["steps"] <= 25
+    mug = report["tables"]["dhd"]["mug"]
+    assert mug["class_right"] == mug["known_trials"] == 1
+    tables = (tmp_path / "tables.md").read_text(encoding="utf-8")
+    assert "## touch.dhd" in tables and "| mug_tall | 1 | - | - |" in tables
+    assert "evaluated 2 touch runs" in capsys.readouterr().out
+    summary = Path(records["mug"]["run_dir"]) / "summary.json"
+    stamp = summary.stat().st_mtime_ns
+    assert main(args) == 0  # finished runs with the same arguments are reused
+    assert summary.stat().st_mtime_ns == stamp
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--explorers", "dhd,spiral"], "spiral is not one of dhd, rrt"),
+        (["--trials", "0"], "--trials must be at least 1"),
+        (["--set", "explore_touch.max_touches=3"], "is not valid"),
+    ],
+    ids=["explorer", "trials", "override"],
+)
+def test_bad_options_are_clear_errors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str], message: str
+) -> None:
+    code = main(["eval", str(SKILL), "--objects", "mug", "--trials", "1",
+                 "--out", str(tmp_path), *extra])  # fmt: skip
+    assert code == 2
+    assert message in capsys.readouterr().err
