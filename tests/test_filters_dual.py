@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
@@ -420,3 +421,88 @@ def test_pose_floor_widens_the_unscented_spread_only() -> None:
         DualFilter(LAYOUT, LinearProcess(), LinearObservation(), pose_std_floor=(1.0,))
     with pytest.raises(ValueError, match="min_ess_fraction"):
         DualFilter(LAYOUT, LinearProcess(), LinearObservation(), min_ess_fraction=2.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Fast paths against the plain formulas
+
+
+def halving_bisection(log_likelihood: Tensor, min_ess: float, iterations: int = 40) -> Tensor:
+    """Reference tempering: beta halved one bit at a time, the ESS by log-sum-exp."""
+    from vistac.plugins.filters.dual import effective_sample_size
+
+    def ess(beta: Tensor) -> Tensor:
+        scaled = beta.unsqueeze(-1) * log_likelihood
+        return effective_sample_size(scaled - torch.logsumexp(scaled, -1, keepdim=True))
+
+    ones = log_likelihood.new_ones(log_likelihood.shape[:-1])
+    low, high = torch.zeros_like(ones), ones.clone()
+    for _ in range(iterations):
+        middle = 0.5 * (low + high)
+        ok = ess(middle) >= min_ess
+        low, high = torch.where(ok, middle, low), torch.where(ok, high, middle)
+    return torch.where(ess(ones) >= min_ess, ones, low)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_tempering_finds_the_beta_of_one_bit_bisection(seed: int) -> None:
+    from vistac.plugins.filters.dual import temper_log_weights
+
+    generator = torch.Generator().manual_seed(seed)
+    spread = torch.tensor([[0.1], [3.0], [30.0], [3000.0]], dtype=DTYPE)
+    log_likelihood = spread * torch.randn(4, 100, generator=generator, dtype=DTYPE)
+    _, beta = temper_log_weights(log_likelihood, 80.0)
+    torch.testing.assert_close(beta, halving_bisection(log_likelihood, 80.0), rtol=0, atol=2e-12)
+    assert float(beta[0]) == 1.0 and float(beta[-1]) < 0.01
+
+
+def residual_case(seed: int) -> tuple[Tensor, Tensor, Tensor]:
+    """expected [2, 30, 50], observation [2, 50], noise_var [2, 50]: depth-like values with
+    entries where every point agrees (zero spread)."""
+    generator = torch.Generator().manual_seed(seed)
+    expected = 0.5 + 0.05 * torch.randn(2, 30, 50, generator=generator, dtype=DTYPE)
+    expected[..., :10] = 0.7
+    observation = 0.5 + 0.05 * torch.randn(2, 50, generator=generator, dtype=DTYPE)
+    noise_var = 1e-4 * (1.0 + torch.rand(2, 50, generator=generator, dtype=DTYPE))
+    return expected, observation, noise_var
+
+
+def test_likelihoods_from_squared_residuals_equal_the_plain_formulas() -> None:
+    from vistac.plugins.filters.dual import (
+        modality_log_likelihoods,
+        observation_log_likelihood,
+        spread_var,
+        squared_residuals,
+    )
+
+    expected, observation, noise_var = residual_case(0)
+    scaled = (expected - observation.unsqueeze(-2)).square() / noise_var.unsqueeze(-2)
+    torch.testing.assert_close(
+        observation_log_likelihood(expected, observation, noise_var), -0.5 * scaled.sum(-1)
+    )
+    visual, tactile = scaled[..., :-2].mean(-1), scaled[..., -2:].mean(-1)
+    plain = [torch.logsumexp(-0.5 * part, -1) - math.log(30) for part in (visual, tactile)]
+    torch.testing.assert_close(
+        modality_log_likelihoods(expected, observation, noise_var, 2), torch.stack(plain, -1)
+    )
+    squared = squared_residuals(expected, observation)
+    spread = spread_var(expected.mean(-2) - observation, squared)
+    # zero spread comes out as rounding (~1e-17) against R ~ 1e-4: never negative
+    torch.testing.assert_close(spread, expected.var(-2), rtol=1e-9, atol=1e-15)
+    assert bool((spread[..., :10] >= 0).all())
+
+
+def test_consumed_expected_observations_give_the_same_update() -> None:
+    """Without autograd the filter writes the residuals over the expected observations; with
+    autograd it keeps them: the same posterior either way."""
+    dual = DualFilter(LAYOUT, LinearProcess(), LinearObservation(), 50)
+    observation = as_tensor([0.01, -0.02, 0.03, 0.9, 1.1])
+    posteriors = []
+    for grad in (False, True):
+        generator = torch.Generator().manual_seed(3)
+        mean = as_tensor(PRIOR_MEAN).requires_grad_(grad)
+        with torch.set_grad_enabled(grad):
+            belief = Belief(mean, torch.diag(as_tensor(PRIOR_VAR)))
+            posteriors.append(dual.step(belief, make_inputs(), DT_S, observation, generator))
+    torch.testing.assert_close(posteriors[0].mean, posteriors[1].mean.detach())
+    torch.testing.assert_close(posteriors[0].cov, posteriors[1].cov.detach())

@@ -150,6 +150,88 @@ def test_gnn_runs_on_one_two_and_three_links(tmp_path: Path) -> None:
             check_prediction(model.predict(states, inputs, DT_S), (2,), n_links)
 
 
+def reference_graph_step(
+    net: GraphProcessNet, states: Tensor, inputs: ProcessInput
+) -> Prediction:
+    """Algorithm 1 written link by link for one batch element (states [C, n]): the cause
+    pass breadth-first from the robot, the effect pass back from the deepest links."""
+    from vistac.plugins.filters import nets
+
+    layout = StateLayout((states.shape[-1] + 1) // 11)
+    n_links, acted = layout.n_links, int(inputs.link)
+    links = net._link_nodes(states, inputs)  # [C, L, D]
+    robot = net._robot_node(inputs).expand(states.shape[0], -1)
+    pose = layout.link_pose(states)
+    hinges = nets.hinge_points(pose, inputs)  # [C, L - 1, 2]
+
+    def joint_edge(joint: int, receiver: int) -> Tensor:
+        geometry = hinges[:, joint] - pose[:, receiver, :2]
+        geometry = rotate(geometry, -inputs.pd_rad) / nets.SIZE_SCALE_M
+        value = layout.joint_friction(states)[:, joint] / nets.JOINT_FRICTION_SCALE_NM
+        return nets._edge(value, nets._EDGE_JOINT, geometry)
+
+    robot_edge = nets._edge(inputs.is_pull.expand(states.shape[0]), nets._EDGE_ROBOT)
+    table = nets._node(links.new_zeros(nets.NODE_DIM - 3), nets._TABLE).expand_as(robot)
+    friction = layout.link_parameters(states)[..., 1] / nets.FRICTION_SCALE
+    nodes = list(links.unbind(-2))
+    support = [
+        net._message(table, nodes[link], nets._edge(friction[:, link], nets._EDGE_SUPPORT))
+        for link in range(n_links)
+    ]
+    by_depth = sorted(range(n_links), key=lambda link: abs(link - acted))
+    for link in by_depth:
+        parent = link + (acted > link) - (acted < link)
+        sender, edge = (robot, robot_edge) if link == acted else (
+            nodes[parent], joint_edge(min(link, parent), link)
+        )  # fmt: skip
+        cause = net._message(sender, nodes[link], edge)
+        nodes[link] = net._update(nodes[link], cause + support[link])
+    for link in reversed(by_depth):
+        children = [
+            child for child in (link + 1, link - 1)
+            if 0 <= child < n_links and abs(child - acted) == abs(link - acted) + 1
+        ]  # fmt: skip
+        if children:
+            message = torch.zeros(states.shape[0], net.hidden, dtype=DTYPE)
+            for child in children:
+                edge = joint_edge(min(link, child), link)
+                message = message + net._message(nodes[child], nodes[link], edge)
+            nodes[link] = net._update(nodes[link], message)
+    force = net.tac_net(net._message(nodes[acted], robot, robot_edge))
+    delta = torch.stack(nodes, -2)[..., : nets.MOTION_DIM] - links[..., : nets.MOTION_DIM]
+    return Prediction(
+        pose=nets.integrate(states, delta, inputs, DT_S),
+        force_n=nets.force_to_world(force, inputs),
+        process_var=net.noise(inputs.tcp.shape[:-1], n_links),
+    )
+
+
+@pytest.mark.parametrize("n_links", [1, 2, 3, 4])
+def test_gnn_equals_the_link_by_link_reference(n_links: int) -> None:
+    """The batched message passing (only the rows each phase updates) against Algorithm 1
+    link by link, with a different acted link in each batch element, and its gradients."""
+    torch.manual_seed(n_links)
+    net = GraphProcessNet(hidden=16)
+    acted = torch.arange(n_links).repeat(2)[: max(2, n_links)]
+    states, inputs = scenario((len(acted),), n_links)
+    inputs = ProcessInput(
+        tcp=inputs.tcp, pd_rad=torch.linspace(-0.5, 0.5, len(acted), dtype=DTYPE),
+        is_pull=(acted % 2).to(DTYPE), link=acted, link_size_m=inputs.link_size_m,
+        link_offset=inputs.link_offset,
+    )  # fmt: skip
+    states.requires_grad_(True)
+    batched = parts(net(states, inputs, DT_S))
+    gradient = torch.autograd.grad(sum(part.square().sum() for part in batched), states)[0]
+    for b in range(len(acted)):
+        one = ProcessInput(*(getattr(inputs, field)[b] for field in inputs.__dataclass_fields__))
+        reference = parts(reference_graph_step(net, states[b], one))
+        for got, want in zip(batched, reference, strict=True):
+            torch.testing.assert_close(got[b], want, rtol=1e-12, atol=1e-12)
+        reference_loss = sum(part.square().sum() for part in reference)
+        want_gradient = torch.autograd.grad(reference_loss, states)[0][b]
+        torch.testing.assert_close(gradient[b], want_gradient, rtol=1e-10, atol=1e-12)
+
+
 def test_gnn_is_translation_and_rotation_invariant() -> None:
     torch.manual_seed(0)
     net = GraphProcessNet(hidden=16)

@@ -248,6 +248,32 @@ def test_render_matches_a_point_by_point_reference(splat_px: int) -> None:
         torch.testing.assert_close(render, expected)
 
 
+@pytest.mark.parametrize("splat_px", [1, 3])
+def test_render_with_dropped_points_matches_the_reference(splat_px: int) -> None:
+    """Some points nearer than min_range_m among visible ones: the clamped-depth path."""
+    args = random_two_link_cloud(400, seed=5)
+    args["points"][::7, 2] = 0.95  # depth 0.05 < min_range_m = 0.1: dropped
+    proj = DepthProjector(
+        args["points"], args["links"], args["initial"], DOWN, DOWN_POSE, splat_px=splat_px
+    )
+    poses = random_poses(args["initial"], (3,), seed=6)
+    for render, pose in zip(proj.render(poses), poses, strict=True):
+        expected = reference_render(args, pose, splat_px, proj.background_m)
+        torch.testing.assert_close(render, expected)
+
+
+def test_renders_of_other_batch_sizes_in_between_do_not_interfere() -> None:
+    """The projector keeps working tensors per image count: reuse gives the same images."""
+    args = random_two_link_cloud(500, seed=7)
+    proj = DepthProjector(args["points"], args["links"], args["initial"], DOWN, DOWN_POSE)
+    poses = random_poses(args["initial"], (4,), seed=8)
+    first = proj.render(poses)
+    for count in range(1, 7):
+        proj.render(random_poses(args["initial"], (count,), seed=count))
+    torch.testing.assert_close(proj.render(poses), first, rtol=0, atol=0)
+    assert first.data_ptr() != proj.render(poses).data_ptr()  # results are never shared
+
+
 def test_batched_render_equals_separate_renders() -> None:
     args = random_two_link_cloud(500, seed=3)
     proj = DepthProjector(args["points"], args["links"], args["initial"], DOWN, DOWN_POSE)

@@ -23,7 +23,8 @@ adds it to the current pose and twist.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import functools
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
@@ -210,12 +211,6 @@ class LearnedNoise(nn.Module):
 # Graph network
 
 
-def _take(values: Tensor, index: Tensor) -> Tensor:
-    """values [..., C, L, k] gathered along L at index [..., 1, L] (int64) -> [..., C, L, k]."""
-    full = index.unsqueeze(-1).expand(*values.shape[:-2], index.shape[-1], values.shape[-1])
-    return torch.gather(values, -2, full)
-
-
 def _node(features: Tensor, node_type: int) -> Tensor:
     """Append the node type one-hot (link, robot, table) to features [..., NODE_DIM - 3]."""
     one_hot = features.new_zeros(*features.shape[:-1], 3)
@@ -232,30 +227,87 @@ def _edge(value: Tensor, kind: int, geometry: Tensor | None = None) -> Tensor:
     return torch.cat([value.unsqueeze(-1), one_hot, geometry], -1)
 
 
+@dataclass(frozen=True)
+class _EffectRows:
+    """One effect phase: the messages from the children of the links at one depth."""
+
+    updated: Tensor
+    """Rows of the links with any child [n C]."""
+    receivers: Tensor
+    """Rows of the links with a child on side +1, then of those with one on side -1."""
+    slots: Tensor
+    """Where each of ``receivers`` is in ``updated``."""
+    side_sizes: list[int]
+    """How many of ``receivers`` belong to each side."""
+    senders: Tensor
+    """Rows of those children, both sides in that order."""
+    edges: Tensor
+    """Rows of the joint edges from the children in ``GraphProcessNet._joint_edges``."""
+
+
 class _Chain:
-    """Indices of the link chain seen from the acted link, broadcast as [..., 1, L]."""
+    """The link chain seen from the acted link of each batch element, as rows of the link
+    nodes flattened to [B C L, ...]: batch element b, sigma point c and link l at row
+    ``(b C + c) L + l``. Every message-passing phase gathers only the rows it updates; all
+    rows are worked out once per (acted links, L, C), see ``chain_of``."""
 
-    def __init__(self, acted: Tensor, n_links: int) -> None:
-        link = torch.arange(n_links, device=acted.device)
-        acted = acted.to(torch.int64).unsqueeze(-1).unsqueeze(-1)  # [..., 1, 1]
-        self.n_links = n_links
-        self.acted_mask = link == acted  # [..., 1, L]
-        self.depth = (link - acted).abs()
-        self.parent = link + torch.sign(acted - link)
-        self.joint_to_parent = torch.minimum(link, self.parent)
+    def __init__(self, acted: tuple[int, ...], n_links: int, n_points: int) -> None:
+        self.n_links, self.n_points = n_links, n_points
+        self.n_rows = len(acted) * n_points * n_links
+        acted_links = torch.tensor(acted, dtype=torch.int64)
+        link = torch.arange(n_links)
+        self._depth = (link - acted_links[:, None]).abs()  # [B, L]
+        self._toward = torch.sign(acted_links[:, None] - link)  # [B, L]: the parent's side
+        self.acted_rows = self._rows(torch.arange(len(acted)), acted_links)
+        """[B C]: rows of the acted links, in the order (b C + c) of the robot rows."""
+        self.cause = [self._cause_rows(depth) for depth in range(1, n_links)]
+        """Per depth 1, 2, ...: rows of the links there, of their parents, of the joint edges
+        to the parents in ``GraphProcessNet._joint_edges``, each [n C]."""
+        self.effect = [self._effect_rows(depth) for depth in reversed(range(n_links - 1))]
+        """Per depth L - 2, ..., 0: the effect phase's rows."""
 
-    def children(self) -> list[tuple[Tensor, Tensor, Tensor]]:
-        """Per direction (+1, -1 along the chain): (neighbour index, whether the neighbour is a
-        child, i.e. one step farther from the acted link, joint index), each [..., 1, L]."""
-        link = torch.arange(self.n_links, device=self.depth.device)
-        result = []
-        for step in (1, -1):
-            inside = (link + step >= 0) & (link + step < self.n_links)
-            child = (link + step).clamp(0, self.n_links - 1).expand_as(self.depth)
-            farther = torch.gather(self.depth, -1, child) == self.depth + 1
-            joint = torch.minimum(link, link + step).clamp(min=0).expand_as(self.depth)
-            result.append((child, inside & farther, joint))
-        return result
+    def _rows(self, batch: Tensor, link: Tensor, offset: Tensor | int = 0) -> Tensor:
+        """Rows of the links (batch[i], link[i]) (plus offset[i]) for every sigma point,
+        i-major: [n] -> [n C] int64."""
+        first = (batch * self.n_points)[:, None] + torch.arange(self.n_points)
+        return (first * self.n_links + (link + offset)[:, None]).reshape(-1)
+
+    def _cause_rows(self, depth: int) -> tuple[Tensor, Tensor, Tensor]:
+        batch, link = (self._depth == depth).nonzero(as_tuple=True)
+        side = self._toward[batch, link]
+        edge = self._rows(batch, link, (side < 0).to(torch.int64) * self.n_rows)
+        return self._rows(batch, link), self._rows(batch, link + side), edge
+
+    def _effect_rows(self, depth: int) -> _EffectRows:
+        receivers, senders, edges = [], [], []
+        link = torch.arange(self.n_links)
+        has_child = torch.zeros_like(self._depth, dtype=torch.bool)
+        for side in (1, -1):
+            inside = (link + side >= 0) & (link + side < self.n_links)
+            with_child = inside & (self._toward != side)  # the neighbour is farther away
+            has_child |= with_child
+            batch, at = ((self._depth == depth) & with_child).nonzero(as_tuple=True)
+            receivers.append(self._rows(batch, at))
+            senders.append(self._rows(batch, at + side))
+            edges.append(self._rows(batch, at, int(side < 0) * self.n_rows))
+        batch, at = ((self._depth == depth) & has_child).nonzero(as_tuple=True)
+        updated = self._rows(batch, at)
+        slot = torch.full((self.n_rows,), -1, dtype=torch.int64)
+        slot[updated] = torch.arange(len(updated))
+        return _EffectRows(
+            updated=updated,
+            receivers=torch.cat(receivers),
+            slots=slot[torch.cat(receivers)],
+            side_sizes=[len(rows) for rows in receivers],
+            senders=torch.cat(senders),
+            edges=torch.cat(edges),
+        )
+
+
+@functools.lru_cache(maxsize=32)
+def chain_of(acted: tuple[int, ...], n_links: int, n_points: int) -> _Chain:
+    """The (cached) chain rows for the acted link of each batch element (CPU tensors)."""
+    return _Chain(acted, n_links, n_points)
 
 
 class GraphProcessNet(nn.Module):
@@ -266,7 +318,8 @@ class GraphProcessNet(nn.Module):
     ``f_e`` (edge message) and ``f_n`` (residual node update) are 3-layer MLPs shared by all
     edges and nodes; ``tac_net`` maps the effect message towards the robot to the tactile force.
     The chain is visited breadth-first from the acted link (``inputs.link``), which may differ
-    across the batch.
+    across the batch. The nodes of all batch elements and sigma points are rows of one matrix,
+    and each phase runs the MLPs once on just the rows it updates.
     """
 
     def __init__(self, hidden: int = 64) -> None:
@@ -287,81 +340,84 @@ class GraphProcessNet(nn.Module):
         """states [..., C, n] -> Prediction (pose [..., C, 6 L], force_n [..., C, 2],
         process_var [..., 6 L])."""
         layout = layout_of(states)
-        n_links = layout.n_links
-        chain = _Chain(inputs.link, n_links)
-        links = self._link_nodes(states, inputs)  # [..., C, L, D]
-        robot = self._robot_node(inputs).unsqueeze(-2).expand(*links.shape[:-2], NODE_DIM)
-        table = _node(links.new_zeros(NODE_DIM - 3), _TABLE)
+        n_links, (*batch, n_points, _) = layout.n_links, states.shape
+        acted = inputs.link.to(torch.int64).expand(batch).reshape(-1)
+        chain = chain_of(tuple(acted.tolist()), n_links, n_points)
+        links = self._link_nodes(states, inputs).reshape(-1, NODE_DIM)  # [B C L, D]
+        robot = self._robot_node(inputs).unsqueeze(-2).expand(*batch, n_points, NODE_DIM)
+        robot = robot.reshape(-1, NODE_DIM)  # [B C, D]
+        is_pull = inputs.is_pull.to(states.dtype).expand(batch).unsqueeze(-1)
+        robot_edge = _edge(is_pull.expand(*batch, n_points), _EDGE_ROBOT).reshape(-1, EDGE_DIM)
+        friction = layout.link_parameters(states)[..., 1].reshape(-1) / FRICTION_SCALE
+        table = _node(links.new_zeros(NODE_DIM - 3), _TABLE).expand_as(links)
+        support = self._message(table, links, _edge(friction, _EDGE_SUPPORT))  # [B C L, H]
 
-        pose = layout.link_pose(states)
-        params = layout.link_parameters(states)
-        pad = pose.new_zeros(*pose.shape[:-2], 1)
-        joint_friction = torch.cat([layout.joint_friction(states), pad], -1)  # [..., C, L]
-        hinges = torch.cat([hinge_points(pose, inputs), pad.new_zeros(*pad.shape, 2)], -2)
-        is_pull = inputs.is_pull.to(states.dtype).unsqueeze(-1).unsqueeze(-1)
-
-        def joint_edge(joint: Tensor) -> Tensor:
-            """Static features of the joint edges indexed by joint [..., 1, L] towards each
-            link (the receiver)."""
-            geometry = _take(hinges, joint) - pose[..., :2]
-            geometry = rotate(geometry, -inputs.pd_rad[..., None, None]) / SIZE_SCALE_M
-            value = torch.gather(joint_friction, -1, joint.expand(*pose.shape[:-1]))
-            return _edge(value / JOINT_FRICTION_SCALE_NM, _EDGE_JOINT, geometry)
-
-        robot_edge = _edge(is_pull.expand(*pose.shape[:-1]), _EDGE_ROBOT)
-        cause_edge = torch.where(
-            chain.acted_mask.unsqueeze(-1), robot_edge, joint_edge(chain.joint_to_parent)
-        )
-        support = self._message(
-            table.expand_as(links),
-            links,
-            _edge(params[..., 1] / FRICTION_SCALE, _EDGE_SUPPORT),
-        )
-
-        nodes = self._propagate_cause(links, robot, support, cause_edge, chain)
-        nodes = self._propagate_effect(nodes, chain, joint_edge)
-        acted = (nodes * chain.acted_mask.unsqueeze(-1).to(nodes.dtype)).sum(-2)
-        to_robot = self._message(acted, robot, robot_edge[..., 0, :])
-        force = force_to_world(self.tac_net(to_robot), inputs)
-        delta = nodes[..., :MOTION_DIM] - links[..., :MOTION_DIM]
+        joint_edges = self._joint_edges(states, inputs)
+        nodes = self._propagate_cause(links, robot, support, robot_edge, joint_edges, chain)
+        nodes = self._propagate_effect(nodes, joint_edges, chain)
+        to_robot = self._message(nodes[chain.acted_rows], robot, robot_edge)
+        force = force_to_world(self.tac_net(to_robot).reshape(*batch, n_points, 2), inputs)
+        delta = (nodes - links)[:, :MOTION_DIM].reshape(*batch, n_points, n_links, MOTION_DIM)
         return Prediction(
             pose=integrate(states, delta, inputs, dt_s),
             force_n=force,
             process_var=self.noise(inputs.tcp.shape[:-1], n_links),
         )
 
+    @staticmethod
+    def _joint_edges(states: Tensor, inputs: ProcessInput) -> Tensor:
+        """Static features of the joint edges towards each link: [2 B C L, EDGE_DIM], the
+        joint on side +1 of every link (joint l) in the first B C L rows, the one on side -1
+        (joint l - 1) in the rest; rows without such a joint hold finite filler."""
+        layout = layout_of(states)
+        pose = layout.link_pose(states)
+        hinges = hinge_points(pose, inputs)  # [..., C, L - 1, 2]
+        friction = layout.joint_friction(states) / JOINT_FRICTION_SCALE_NM  # [..., C, L - 1]
+        no_friction = friction.new_zeros(*pose.shape[:-2], 1)  # filler beyond the chain's ends
+        no_hinge = no_friction.unsqueeze(-1).expand(*no_friction.shape, 2)
+        hinge = torch.stack([torch.cat([hinges, no_hinge], -2), torch.cat([no_hinge, hinges], -2)])
+        value = torch.stack(
+            [torch.cat([friction, no_friction], -1), torch.cat([no_friction, friction], -1)]
+        )
+        geometry = rotate(hinge - pose[..., :2], -inputs.pd_rad[..., None, None]) / SIZE_SCALE_M
+        return _edge(value, _EDGE_JOINT, geometry).reshape(-1, EDGE_DIM)
+
     def _propagate_cause(
-        self, links: Tensor, robot: Tensor, support: Tensor, cause_edge: Tensor, chain: _Chain
+        self,
+        links: Tensor,
+        robot: Tensor,
+        support: Tensor,
+        robot_edge: Tensor,
+        joint_edges: Tensor,
+        chain: _Chain,
     ) -> Tensor:
         """Breadth-first from the robot: the links at depth d are updated from their parent's
-        (already updated) features plus their support message."""
+        (already updated) features plus their support message. links [B C L, D]."""
         nodes = links
-        acted = chain.acted_mask.unsqueeze(-1)
-        robot = robot.unsqueeze(-2).expand_as(links)
-        for depth in range(chain.n_links):
-            parent = torch.where(acted, robot, _take(nodes, chain.parent))
-            cause = self._message(parent, nodes, cause_edge)
-            updated = self._update(nodes, cause + support)
-            nodes = torch.where((chain.depth == depth).unsqueeze(-1), updated, nodes)
+        acted = chain.acted_rows
+        cause = self._message(robot, nodes[acted], robot_edge)
+        nodes = nodes.index_copy(0, acted, self._update(nodes[acted], cause + support[acted]))
+        for receivers, senders, edges in chain.cause:
+            cause = self._message(nodes[senders], nodes[receivers], joint_edges[edges])
+            updated = self._update(nodes[receivers], cause + support[receivers])
+            nodes = nodes.index_copy(0, receivers, updated)
         return nodes
 
-    def _propagate_effect(
-        self, nodes: Tensor, chain: _Chain, joint_edge: Callable[[Tensor], Tensor]
-    ) -> Tensor:
+    def _propagate_effect(self, nodes: Tensor, joint_edges: Tensor, chain: _Chain) -> Tensor:
         """Back from the deepest links: every link with children is updated by the sum of the
         messages from its children (the neighbours farther from the robot)."""
-        children = []
-        has_child = torch.zeros_like(chain.acted_mask)
-        for child, valid, joint in chain.children():
-            children.append((child, valid.unsqueeze(-1).to(nodes.dtype), joint_edge(joint)))
-            has_child = has_child | valid
-        for depth in reversed(range(chain.n_links - 1)):
-            message = nodes.new_zeros(*nodes.shape[:-1], self.hidden)
-            for child, valid, edge in children:
-                message = message + valid * self._message(_take(nodes, child), nodes, edge)
-            updated = self._update(nodes, message)
-            mask = ((chain.depth == depth) & has_child).unsqueeze(-1)
-            nodes = torch.where(mask, updated, nodes)
+        for phase in chain.effect:
+            senders, receivers = nodes[phase.senders], nodes[phase.receivers]
+            messages = self._message(senders, receivers, joint_edges[phase.edges])
+            message = nodes.new_zeros(len(phase.updated), self.hidden)
+            sides = zip(
+                phase.slots.split(phase.side_sizes), messages.split(phase.side_sizes),
+                strict=True,
+            )  # fmt: skip
+            for slots, part in sides:  # side +1, then side -1: a link's children in order
+                message.index_add_(0, slots, part)
+            rows = phase.updated
+            nodes = nodes.index_copy(0, rows, self._update(nodes[rows], message))
         return nodes
 
     def _link_nodes(self, states: Tensor, inputs: ProcessInput) -> Tensor:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -54,6 +55,46 @@ def _check_shape(name: str, tensor: Tensor, shape: tuple[int, ...]) -> None:
         raise ValueError(f"{name}: expected shape [..., {expected}], got {list(tensor.shape)}")
 
 
+_SCRATCH_SIZES = 4
+"""Render sizes (image counts) whose scratch tensors a projector keeps; more are dropped."""
+
+
+@dataclass(frozen=True)
+class _RenderScratch:
+    """Working tensors of a render of N images of P points, kept between calls: fresh
+    multi-megabyte tensors on every call cost more in page faults than the arithmetic."""
+
+    pixel: Tensor
+    """[3, N, P] homogeneous pixel coordinates (u z, v z, z) in the padded image."""
+    depth: Tensor
+    """[N, P] depth clamped into the range, then the value each point scatters (used only
+    when some point is out of range)."""
+    dropped: Tensor
+    """[N, P] bool: outside the depth range."""
+    flat: Tensor
+    """[N, P] flat index of each footprint's first pixel (float64, exact integers)."""
+    index: Tensor
+    """[N, P] the same as int64."""
+    padded: Tensor
+    """[N, H + 2 pad, W + 2 pad] the z-buffer."""
+    image_start: Tensor
+    """[N, 1] flat index of each image's first padded pixel (float64)."""
+
+    @classmethod
+    def allocate(cls, n_images: int, n_points: int, padded_hw: tuple[int, int]) -> _RenderScratch:
+        padded_size = padded_hw[0] * padded_hw[1]
+        image_start = torch.arange(n_images, dtype=DTYPE)[:, None] * padded_size
+        return cls(
+            pixel=torch.empty(3, n_images, n_points, dtype=DTYPE),
+            depth=torch.empty(n_images, n_points, dtype=DTYPE),
+            dropped=torch.empty(n_images, n_points, dtype=torch.bool),
+            flat=torch.empty(n_images, n_points, dtype=DTYPE),
+            index=torch.empty(n_images, n_points, dtype=torch.int64),
+            padded=torch.empty(n_images, *padded_hw, dtype=DTYPE),
+            image_start=image_start,
+        )
+
+
 class DepthProjector:
     """Renders the initial segmented object cloud at planar link poses (eq. 27).
 
@@ -61,7 +102,10 @@ class DepthProjector:
     new pose ``(x, y, theta)``, the point rotates about z by ``theta - theta0`` around the
     link's origin and translates by ``(x - x0, y - y0)``; its height is unchanged. The moved
     points are projected with the pinhole model and z-buffered with a scatter-min over the
-    flattened (batch, pixel) index: no Python loop over points or sigma points.
+    flattened (batch, pixel) index: no Python loop over points or sigma points. The rigid
+    motion, the camera pose and the intrinsics are one linear map per image, applied to all
+    points by a single matrix product. The working tensors are kept between calls (per image
+    count), so one projector must not render from two threads at once.
 
     Not differentiable with respect to the poses: the pixel a point lands in is piecewise
     constant, so ``render`` runs without autograd and returns values only (the filter's
@@ -105,12 +149,16 @@ class DepthProjector:
         self.max_range_m = max_range_m
         self.intrinsics = intrinsics.scaled(width_px, height_px)
         rotation_wc, translation_wc = pose_wc[:3, :3], pose_wc[:3, 3]
-        rotation_cw = rotation_wc.T
-        self._camera_xy = rotation_cw[:, :2]  # camera-frame images of the world x, y axes
-        self._local = self._link_coordinates(points, links, poses0)
-        self._fixed_camera = (points[:, 2:3] * rotation_cw[:, 2] - rotation_cw @ translation_wc).T
+        pixel_from_world = self._padded_pixel_from_camera() @ rotation_wc.T
+        self._pose_to_map = self._pose_coefficients(pixel_from_world, translation_wc)
+        depth_m = (points - translation_wc) @ rotation_wc[:, 2]  # at the initial poses
+        self._local, self._link_points = self._link_coordinates(points, links, poses0, depth_m)
         self._footprint = self._footprint_offsets(splat_px, self.intrinsics.width + 2 * splat_px)
         self.background_m = self._table_depth(rotation_wc, translation_wc)
+        self._padded_background = torch.nn.functional.pad(
+            self.background_m, (splat_px,) * 4, value=math.inf
+        )
+        self._scratch: dict[int, _RenderScratch] = {}
         logger.debug(
             "DepthProjector: %d points, %d links, %dx%d px, splat %d, %.0f%% background rays "
             "miss the table",
@@ -140,21 +188,66 @@ class DepthProjector:
                              f"{max_range_m}")
 
     @staticmethod
-    def _link_coordinates(points: Tensor, links: Tensor, poses0: Tensor) -> Tensor:
-        """Homogeneous planar coordinates of each point in its link's frame, one block of
-        rows (x, y, 1) per link and zeros in the other links' blocks: [3 L, P].
+    def _link_coordinates(
+        points: Tensor, links: Tensor, poses0: Tensor, depth_m: Tensor
+    ) -> tuple[list[Tensor], list[slice]]:
+        """Per link, the coordinates its points' images are linear in: [4, P_l] rows
+        (x, y, 1, height), x and y in the link's frame, ``Rz(-theta0) (p_xy - origin0)``; and
+        each link's columns of the point order.
 
-        The link-frame coordinates are ``Rz(-theta0) (p_xy - origin0)``.
+        The points are sorted by link, then by their initial depth ``depth_m`` [P], nearest
+        first: the z-buffer's minimum then rarely changes after a pixel's first point, which
+        halves the scatter-min's time (fewer mispredicted branches); its result does not
+        depend on the order.
         """
+        by_depth = torch.argsort(depth_m)
+        order = by_depth[torch.argsort(links[by_depth], stable=True)]
+        points, links = points[order], links[order]
         local_xy = torch.einsum(
             "pji,pj->pi", _rotation_z(poses0[links, 2]), points[:, :2] - poses0[links, :2]
         )
-        local = torch.zeros(3 * poses0.shape[0], points.shape[0], dtype=DTYPE)
-        columns = torch.arange(points.shape[0])
-        local[3 * links, columns] = local_xy[:, 0]
-        local[3 * links + 1, columns] = local_xy[:, 1]
-        local[3 * links + 2, columns] = 1.0
-        return local
+        local = torch.stack(
+            [local_xy[:, 0], local_xy[:, 1], torch.ones_like(points[:, 2]), points[:, 2]]
+        )
+        ends = torch.bincount(links, minlength=poses0.shape[0]).cumsum(0).tolist()
+        columns = [slice(start, end) for start, end in zip([0, *ends[:-1]], ends, strict=True)]
+        return [local[:, c].contiguous() for c in columns], columns
+
+    @staticmethod
+    def _pose_coefficients(pixel_from_world: Tensor, translation_wc: Tensor) -> Tensor:
+        """[5, 12]: the map of a link's points, ``(u z, v z, z) = A (x, y, 1, height)`` with A
+        [3, 4] flattened row-major, is linear in the link pose features (cos theta, sin theta,
+        x, y, 1); this is that linear map.
+
+        ``A = [Pxy Rz(theta) | Pxy (x, y) + c | Pz]`` with ``Pxy``, ``Pz`` the pixel images of
+        the world x, y and z axes and ``c = -P t_wc`` the camera offset.
+        """
+        axis_x, axis_y, axis_z = pixel_from_world.T
+        offset = -pixel_from_world @ translation_wc
+        zero = torch.zeros(3, dtype=DTYPE)
+        columns = [  # per feature: the columns (x, y, 1, height) of A
+            [axis_x, axis_y, zero, zero],  # cos theta
+            [axis_y, -axis_x, zero, zero],  # sin theta
+            [zero, zero, axis_x, zero],  # x
+            [zero, zero, axis_y, zero],  # y
+            [zero, zero, offset, axis_z],  # 1
+        ]
+        return torch.stack([torch.stack(c, -1).reshape(12) for c in columns])
+
+    def _padded_pixel_from_camera(self) -> Tensor:
+        """[3, 3] intrinsic matrix whose homogeneous result ``(u z, v z, z)`` has ``floor(u)``,
+        ``floor(v)`` = the column and row of a point's footprint's first pixel in the image
+        padded by ``splat_px`` pixels on each side.
+
+        The footprint's first pixel is the one whose corner is nearest to the projection
+        shifted by ``-(splat_px - 1) / 2``: ``floor(fx x / z + cx - (splat_px - 1) / 2 + 0.5)``.
+        """
+        k = self.intrinsics
+        offset = self.splat_px - 0.5 * (self.splat_px - 1) + 0.5
+        return torch.tensor(
+            [[k.fx, 0.0, k.cx + offset], [0.0, k.fy, k.cy + offset], [0.0, 0.0, 1.0]],
+            dtype=DTYPE,
+        )
 
     @staticmethod
     def _footprint_offsets(splat_px: int, row_stride: int) -> Tensor:
@@ -179,18 +272,15 @@ class DepthProjector:
     def width_px(self) -> int:
         return self.intrinsics.width
 
-    def _points_camera(self, link_poses: Tensor) -> Tensor:
-        """Object points moved to the link poses, in the camera frame.
-
-        link_poses: [N, L, 3] (x_m, y_m, theta_rad) -> [N, 3, P] (x, y, z rows).
-        One batched matmul with the per-link affine maps, no gather over points.
-        """
-        n_images = link_poses.shape[0]
-        rotation = self._camera_xy @ _rotation_z(link_poses[..., 2])  # [N, L, 3, 2]
-        translation = self._camera_xy @ link_poses[..., :2, None]  # [N, L, 3, 1]
-        camera_from_link = torch.cat([rotation, translation], -1)  # [N, L, 3, 3]
-        blocks = camera_from_link.transpose(1, 2).reshape(n_images, 3, 3 * self.n_links)
-        return blocks @ self._local + self._fixed_camera
+    def _pixel_maps(self, link_poses: Tensor) -> Tensor:
+        """Per link, the linear map from its ``_local`` coordinates to the homogeneous pixel
+        coordinates of each image: link_poses [N, L, 3] (x_m, y_m, theta_rad) ->
+        [L, 3 N, 4], rows ordered (u, v, z) then image."""
+        theta = link_poses[..., 2]
+        x_m, y_m, ones = link_poses[..., 0], link_poses[..., 1], torch.ones_like(theta)
+        features = torch.stack([theta.cos(), theta.sin(), x_m, y_m, ones], -1)
+        maps = (features @ self._pose_to_map).unflatten(-1, (3, 4))  # [N, L, 3, 4]
+        return maps.permute(1, 2, 0, 3).reshape(self.n_links, -1, 4)
 
     def render(self, link_poses: Tensor) -> Tensor:
         """Expected depth images: [..., C, L, 3] (x_m, y_m, theta_rad) -> [..., C, H, W] (m).
@@ -199,38 +289,65 @@ class DepthProjector:
         """
         poses = torch.as_tensor(link_poses, dtype=DTYPE)
         _check_shape("link_poses", poses, (self.n_links, 3))
-        batch = poses.shape[:-2]
-        with torch.no_grad():
-            depth_m = self._zbuffer(self._points_camera(poses.reshape(-1, self.n_links, 3)))
-        return depth_m.reshape(*batch, self.height_px, self.width_px).contiguous()
+        depth_m = torch.empty((*poses.shape[:-2], self.height_px, self.width_px), dtype=DTYPE)
+        self.render_into(poses.reshape(-1, self.n_links, 3), depth_m.view(-1, *depth_m.shape[-2:]))
+        return depth_m
 
-    def _zbuffer(self, points_camera: Tensor) -> Tensor:
-        """Scatter-min of the points' depth into their footprints: [N, 3, P] -> [N, H, W].
+    def render_into(self, link_poses: Tensor, out: Tensor) -> None:
+        """``render`` of link_poses [N, L, 3] written into out [N, H, W] (any strides, e.g. a
+        view of the depth part of observation vectors). Values only (no autograd)."""
+        n_images = link_poses.shape[0]
+        scratch = self._scratch.get(n_images)
+        if scratch is None:
+            if len(self._scratch) >= _SCRATCH_SIZES:
+                del self._scratch[next(iter(self._scratch))]
+            padded_h, padded_w = self._padded_background.shape
+            n_points = self._link_points[-1].stop
+            scratch = _RenderScratch.allocate(n_images, n_points, (padded_h, padded_w))
+            self._scratch[n_images] = scratch
+        with torch.no_grad():
+            pixel = scratch.pixel.view(3 * n_images, -1)
+            maps = self._pixel_maps(link_poses.detach())
+            for link_map, local, columns in zip(maps, self._local, self._link_points, strict=True):
+                torch.mm(link_map, local, out=pixel[:, columns])
+            out.copy_(self._zbuffer(scratch))
+
+    def _zbuffer(self, scratch: _RenderScratch) -> Tensor:
+        """Scatter-min of the points' depth (``scratch.pixel``) into their footprints:
+        -> [N, H, W], a view of ``scratch.padded``.
 
         The image is padded by ``splat_px`` pixels on each side and the footprints' first
         pixels are clamped into the padding, so that no bounds test is needed: what lands in
         the padding is cropped. Dropped points scatter +inf, which ``amin`` ignores.
         """
         k, pad = self.intrinsics, self.splat_px
-        n_images, padded_w = points_camera.shape[0], k.width + 2 * pad
-        padded_size = (k.height + 2 * pad) * padded_w
-        depth_m = points_camera[:, 2]
-        visible = (depth_m >= self.min_range_m) & (depth_m <= self.max_range_m)
-        safe_depth_m = torch.where(visible, depth_m, torch.ones_like(depth_m))
-        shift = 0.5 * (self.splat_px - 1)  # the footprint's first pixel is the rounded corner
-        u = k.fx * points_camera[:, 0] / safe_depth_m + (k.cx - shift + 0.5)
-        v = k.fy * points_camera[:, 1] / safe_depth_m + (k.cy - shift + 0.5)
-        col0 = u.floor_().clamp_(-pad, k.width).long() + pad
-        row0 = v.floor_().clamp_(-pad, k.height).long() + pad
-        first = row0 * padded_w + col0 + torch.arange(n_images)[:, None] * padded_size
-        index = (first[..., None] + self._footprint).reshape(-1)
-        values = torch.where(visible, depth_m, torch.full_like(depth_m, math.inf))
-        values = values[..., None].expand(-1, -1, self._footprint.numel()).reshape(-1)
-        padded = torch.full((n_images, k.height + 2 * pad, padded_w), math.inf, dtype=DTYPE)
-        image = padded[:, pad : pad + k.height, pad : pad + k.width]
-        image.copy_(self.background_m.expand_as(image))
-        padded.view(-1).scatter_reduce_(0, index, values, reduce="amin", include_self=True)
-        return image
+        padded_w = k.width + 2 * pad
+        u_z, v_z, z_m = scratch.pixel
+        depth_m, dropped = self._depth_in_range(z_m, scratch)
+        col0 = u_z.div_(depth_m).clamp_(0.0, k.width + pad).floor_()
+        row0 = v_z.div_(depth_m).clamp_(0.0, k.height + pad).floor_()
+        first = torch.add(col0, row0, alpha=padded_w, out=scratch.flat).add_(scratch.image_start)
+        index = scratch.index.copy_(first)
+        values = depth_m if dropped is None else depth_m.masked_fill_(dropped, math.inf)
+        if self.splat_px > 1:
+            index = index[..., None] + self._footprint
+            values = values[..., None].expand(index.shape)
+        padded = scratch.padded
+        padded.copy_(self._padded_background.expand_as(padded))
+        padded.view(-1).scatter_reduce_(
+            0, index.reshape(-1), values.reshape(-1), reduce="amin", include_self=True
+        )
+        return padded[:, pad : pad + k.height, pad : pad + k.width]
+
+    def _depth_in_range(self, z_m: Tensor, scratch: _RenderScratch) -> tuple[Tensor, Tensor | None]:
+        """The points' depth z_m [N, P] clamped into the range (a safe divisor) and the mask
+        of the points outside it; ``(z_m, None)`` when every point is in range (the usual
+        case, checked in one pass)."""
+        nearest_m, farthest_m = torch.aminmax(z_m)
+        if self.min_range_m <= nearest_m and farthest_m <= self.max_range_m:
+            return z_m, None
+        depth_m = torch.clamp(z_m, self.min_range_m, self.max_range_m, out=scratch.depth)
+        return depth_m, torch.ne(z_m, depth_m, out=scratch.dropped)
 
 
 def observation_vector(depth_m: Tensor, force_n: Tensor, background_m: Tensor) -> Tensor:
@@ -379,8 +496,14 @@ class ProjectionObservationModel:
         """
         _check_shape("states", states, (self.layout.size,))
         link_poses = self.layout.link_pose(states)[..., :3]  # (x, y, theta) per link
-        depth_m = self.projector.render(link_poses)
-        return observation_vector(depth_m, force_n, self.projector.background_m)
+        n_depth = self.size - N_FORCE
+        expected = torch.empty((*states.shape[:-1], self.size), dtype=DTYPE)
+        flat = expected.view(-1, self.size)
+        depth_m = flat[:, :n_depth].unflatten(-1, (self.projector.height_px, -1))
+        # the render has no missing pixels: nothing for observation_vector to replace
+        self.projector.render_into(link_poses.reshape(-1, self.layout.n_links, 3), depth_m)
+        expected[..., n_depth:] = force_n
+        return expected
 
     def observation(self, depth_m: Tensor, force_n: Tensor) -> Tensor:
         """A measured observation: depth [..., H, W] (NaN = no return), force [..., 2] ->
