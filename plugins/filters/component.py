@@ -190,7 +190,10 @@ class DualFilterComponent(Component):
                 "filters.dual needs a process_model component in the skill "
                 "(filters.gnn, filters.ff or filters.analytical)"
             )
-        self.noise_net = ObsNoiseNet(height_px=config.depth_size_px, width_px=config.depth_size_px)
+        with torch.random.fork_rng(devices=[]):  # the same initial weights for the same seed
+            torch.manual_seed(ctx.seed)
+            self.noise_net = ObsNoiseNet(height_px=config.depth_size_px,
+                                         width_px=config.depth_size_px)
         if config.noise_checkpoint is not None:
             load_checkpoint(self.noise_net, config.noise_checkpoint, "filters.dual", {})
         self.noise_net.to(DTYPE)
