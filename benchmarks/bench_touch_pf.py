@@ -5,9 +5,7 @@ same 200 model points; matching the same contacts), measured in the same run. Ta
 section 8): one PF step <= 50 ms.
 
 The PF sees 20 noise-free touches on a chair at a fixed pose, then each timed step is one more
-contact (weights, resampling, PPF proposals for all classes, eq. 27 weights, MLE). The step is
-timed as wall time and as the thread's CPU time (in the note): on a shared machine the CPU time
-is the steadier figure.
+contact (weights, resampling, PPF proposals for all classes, eq. 27 weights, MLE).
 """
 
 from __future__ import annotations
@@ -56,20 +54,17 @@ def _touches(count: int) -> list[tuple[FloatArray, FloatArray, tuple[FloatArray,
     return [(p + 0.3 * n, p - 0.02 * n, (p, n)) for p, n in zip(points, normals, strict=True)]
 
 
-def pf_steps() -> tuple[float, float, int, float, TouchParticleFilter]:
-    """Median step wall time (s) and CPU time (s), peak particle count, PPF table build (s,
-    10 classes)."""
+def pf_steps() -> tuple[float, int, float, TouchParticleFilter]:
+    """Median step time (s), peak particle count, PPF table build (s, 10 classes)."""
     pf = TouchParticleFilter(TouchParticleFilter.Config(), _Ctx())
     touches = _touches(WARM_TOUCHES + TIMED_TOUCHES)
-    wall_s, cpu_s = [], []
+    samples = []
     for index, (start, target, contact) in enumerate(touches):
-        begin, begin_cpu = time.perf_counter(), time.thread_time()
+        begin = time.perf_counter()
         pf.update(start, target, contact)
         if index >= WARM_TOUCHES:
-            wall_s.append(time.perf_counter() - begin)
-            cpu_s.append(time.thread_time() - begin_cpu)
-    median = statistics.median
-    return median(wall_s), median(cpu_s), pf.max_particle_count, pf.table_build_s, pf
+            samples.append(time.perf_counter() - begin)
+    return statistics.median(samples), pf.max_particle_count, pf.table_build_s, pf
 
 
 def _cloud(points: FloatArray, normals: FloatArray) -> FloatArray:
@@ -115,15 +110,14 @@ def own_ppf(pf: TouchParticleFilter, repeats: int) -> tuple[float, float]:
 
 
 def run(repeats: int) -> list[Row]:
-    step_s, step_cpu_s, peak, tables_s, pf = pf_steps()
+    step_s, peak, tables_s, pf = pf_steps()
     cv_train_s, cv_match_s = opencv_ppf(pf, max(repeats, 5))
     build_s, propose_s = own_ppf(pf, max(repeats, 5))
     budget = "<= ~7,000 (paper: 6,917)"
     return [
         Row("touch PF step, 10 classes, paper's particle budget", step_s * 1e3, "ms",
             "<= 50 ms", step_s <= TARGET_S, "", None,
-            f"median of {TIMED_TOUCHES} steps after {WARM_TOUCHES} touches; "
-            f"CPU {step_cpu_s * 1e3:.1f} ms"),
+            f"median of {TIMED_TOUCHES} steps after {WARM_TOUCHES} touches"),
         Row("touch PF peak particle count", float(peak), "particles", budget, peak <= 7000),
         Row("PPF hash tables, 10 classes x 200 points", tables_s * 1e3, "ms", "-", True),
         Row("PPF table build, one class (200 points)", build_s * 1e3, "ms", "-", True,

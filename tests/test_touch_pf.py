@@ -8,20 +8,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 from test_touch_geometry import Ctx
 from vistac.plugins.touch.explore import DhdExplorer, RrtExplorer
 from vistac.plugins.touch.library import known_class
-from vistac.plugins.touch.meshes import GridStack, apply_pose
+from vistac.plugins.touch.meshes import apply_pose
 from vistac.plugins.touch.metrics import two_way_hausdorff
 from vistac.plugins.touch.pf import (
-    Particles,
     TouchParticleFilter,
     contact_log_likelihood,
     miss_log_likelihood,
     stochastic_universal_sampling,
 )
-from vistac.plugins.touch.ppf import rotation_to_x
 from vistac.plugins.touch.types import MlePrior
 from vistac.protocols import TouchEstimator, TouchExplorer
 
@@ -46,101 +43,6 @@ def test_stochastic_universal_sampling_keeps_heavy_particles() -> None:
     assert np.bincount(index, minlength=4).tolist() == [4, 2, 1, 1]
     index = stochastic_universal_sampling(np.array([0.0, 1.0, 0.0]), 5, np.random.default_rng(1))
     assert index.tolist() == [1] * 5
-
-
-WORKSPACE_CENTRE_M = np.array([0.0, 0.5, 0.3])
-
-
-def random_particles(count: int, classes: int, seed: int) -> Particles:
-    """``count`` particles of random classes and poses around the workspace centre."""
-    rng = np.random.default_rng(seed)
-    rotation = Rotation.random(count, random_state=seed).as_matrix()
-    translation = rng.uniform(-0.05, 0.05, (count, 3)) + WORKSPACE_CENTRE_M
-    return Particles(rng.integers(0, classes, count), rotation, translation, np.zeros(count))
-
-
-def test_the_grid_stack_matches_each_class_grid_in_its_object_frame() -> None:
-    """All classes and poses in one float32 pass = each class's GridSDF at the points moved
-    into that particle's object frame (inside and outside the grids)."""
-    meshes = [known_class(name) for name in ("mug", "chair", "hammer")]
-    stack = GridStack([mesh.grid_sdf for mesh in meshes])
-    particles = random_particles(12, len(meshes), seed=3)
-    points = np.random.default_rng(4).uniform(-0.18, 0.18, (40, 3)) + WORKSPACE_CENTRE_M
-    pose = (particles.cls, particles.rotation, particles.translation)
-    distance, normals = stack.distance_and_normals(*pose, points)
-    assert distance.shape == (12, 40) and normals.shape == (12, 40, 3)
-    assert np.array_equal(stack.distance(*pose, points), distance)
-    assert distance.max() > 0.1  # some points lie outside their grid's box
-    for n in range(len(particles)):
-        local = (points - particles.translation[n]) @ particles.rotation[n]
-        expected, expected_normals = meshes[particles.cls[n]].grid_sdf(local)
-        assert np.allclose(distance[n], expected, atol=1e-6)
-        assert np.allclose(normals[n], expected_normals, atol=1e-4)
-
-
-def test_the_grid_distance_near_the_surface_is_far_below_the_likelihood_noise() -> None:
-    """The grid's approximation of the exact mesh distance within 1 cm of the surface: a
-    fraction of sigma_distance_m (6 mm), so the likelihoods barely change."""
-    mesh = known_class("chair")
-    points, normals = mesh.surface_samples(500, seed=5)
-    offset_m = np.random.default_rng(0).uniform(-0.01, 0.01, len(points))
-    query = points + offset_m[:, None] * normals
-    exact, _ = mesh.sdf()(query)
-    approximate, _ = mesh.grid_sdf(query)
-    error_m = np.abs(approximate - exact)
-    sigma_m = TouchParticleFilter.Config().sigma_distance_m
-    assert np.median(error_m) < 0.05 * sigma_m and error_m.max() < 0.6 * sigma_m
-
-
-def test_batched_likelihoods_match_the_per_particle_equations(tmp_path: Path) -> None:
-    pf = TouchParticleFilter(TouchParticleFilter.Config(classes=["mug", "cone"]), Ctx(tmp_path))
-    particles = random_particles(9, 2, seed=6)
-    rng = np.random.default_rng(7)
-    points = rng.uniform(-0.1, 0.1, (5, 3)) + WORKSPACE_CENTRE_M
-    normals = rng.normal(size=(5, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    contact = pf.log_likelihoods(particles, points, normals)
-    miss = pf.log_likelihoods(particles, points, None)
-    sigma_m, sigma_normal = pf.config.sigma_distance_m, pf.config.sigma_normal
-    for n in range(len(particles)):
-        rotation = particles.rotation[n]
-        local = (points - particles.translation[n]) @ rotation
-        distance, predicted = pf.classes[particles.cls[n]].grid(local)
-        error = np.linalg.norm(normals @ rotation - predicted, axis=1)
-        expected = contact_log_likelihood(distance, error, sigma_m, sigma_normal)
-        assert np.allclose(contact[n], expected, rtol=1e-5, atol=1e-4)
-        assert np.allclose(miss[n], miss_log_likelihood(distance, sigma_m), rtol=1e-5, atol=1e-6)
-    assert pf.log_likelihoods(particles, points[:0], None).shape == (9, 0)
-
-
-def test_proposal_weights_follow_eq_27_per_class(tmp_path: Path) -> None:
-    """Each class's best proposal on the contact subset is weighed on all data; the others of
-    its class differ from it by their subset log likelihood."""
-    pf = TouchParticleFilter(TouchParticleFilter.Config(classes=["mug", "cone"]), Ctx(tmp_path))
-    for start, target, contact in surface_touches("mug", a_pose(0), 4, 0):
-        pf.update(start, target, contact)
-    new = random_particles(10, 2, seed=8)
-    order = np.argsort(new.cls, kind="stable")
-    new = new.take(order)
-    subset_ll = np.random.default_rng(9).normal(size=10)
-    weights = pf._approximate_log_weights(new, subset_ll)
-    for index in range(2):
-        rows = np.flatnonzero(new.cls == index)
-        best = rows[np.argmax(subset_ll[rows])]
-        contact_ll, miss_ll = pf._all_data(new.take([best]))
-        total = contact_ll.sum() + miss_ll.sum()
-        assert weights[best] == pytest.approx(pf._reference_log_weight() + total)
-        assert np.allclose(weights[rows] - weights[best], subset_ll[rows] - subset_ll[best])
-
-
-def test_the_rotation_to_x_turns_each_normal_onto_x() -> None:
-    normals = np.random.default_rng(10).normal(size=(50, 3))
-    normals[:4] = [[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [-1.0, 1e-10, 0.0], [0.0, 0.0, 1.0]]
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    rotation = rotation_to_x(normals)
-    assert np.allclose(np.einsum("nij,nj->ni", rotation, normals), [1.0, 0.0, 0.0], atol=1e-9)
-    assert np.allclose(rotation @ rotation.transpose(0, 2, 1), np.eye(3), atol=1e-9)
-    assert np.allclose(np.linalg.det(rotation), 1.0)
 
 
 def surface_touches(name: str, pose: np.ndarray, count: int, seed: int) -> list[tuple]:

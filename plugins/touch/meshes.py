@@ -2,8 +2,8 @@
 
 A :class:`Mesh` is a closed (watertight) triangle mesh in its object frame. Its signed
 distance (:class:`MeshSDF`, exact, open3d ray casting) is positive outside; :class:`GridSDF`
-samples it on a voxel grid once and interpolates trilinearly; :class:`GridStack` evaluates
-several such grids at thousands of poses in one pass, which is what the particle filter uses.
+samples it on a voxel grid once and interpolates trilinearly, which is what the particle
+filter uses for thousands of poses per step.
 """
 
 from __future__ import annotations
@@ -147,44 +147,8 @@ class MeshSDF:
         )
 
 
-_CORNERS = [(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
-"""The 8 corners of a grid cell, x slowest (the order :func:`_trilinear` pairs them in)."""
-
-
-def _trilinear(
-    values: NDArray[np.float32],
-    coords: NDArray[np.float32],
-    upper: NDArray[np.float32],
-    base: IntArray | int,
-    strides: tuple[IntArray | int, IntArray | int],
-) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Trilinear interpolation of ``values`` [V, C] (flat grids, one row per grid point, z
-    fastest) at continuous grid indices ``coords`` [3, M], each clamped to [0, upper] ([3, M]
-    or [3, 1]: the last index per axis of its grid). ``base`` [M] (or one int) is the flat
-    index of each point's grid origin, ``strides`` the flat steps of x and y ([M] each, or
-    ints; z is 1). Returns the values [M, C] and the distance [M] in cells from each point to
-    its grid box (0 inside)."""
-    clamped = np.clip(coords, np.float32(0.0), upper)
-    gap = coords - clamped
-    outside = np.sqrt(gap[0] * gap[0] + gap[1] * gap[1] + gap[2] * gap[2])
-    cell = np.minimum(clamped.astype(np.int64), upper.astype(np.int64) - 1)
-    fx, fy, fz = (clamped - cell.astype(np.float32))[:, :, None]
-    step_x, step_y = strides
-    flat = base + cell[0] * step_x + cell[1] * step_y + cell[2]
-    v = [values.take(flat + (dx * step_x + dy * step_y + dz), axis=0) for dx, dy, dz in _CORNERS]
-    x = [v[i] + fx * (v[i + 4] - v[i]) for i in range(4)]
-    y = [x[i] + fy * (x[i + 2] - x[i]) for i in range(2)]
-    return y[0] + fz * (y[1] - y[0]), outside
-
-
-def _unit(vectors: NDArray[np.float32]) -> NDArray[np.float32]:
-    """Unit vectors [M, 3] along the rows of ``vectors`` [M, 3] (0 stays 0)."""
-    norm = np.sqrt(np.einsum("mi,mi->m", vectors, vectors))[:, None]
-    return np.asarray(vectors / np.maximum(norm, np.float32(1e-12)), dtype=np.float32)
-
-
 class GridSDF:
-    """A signed distance sampled on a regular grid, interpolated trilinearly (float32).
+    """A signed distance sampled on a regular grid, interpolated trilinearly.
 
     Queries outside the grid get the value at the nearest grid point plus the distance to the
     grid box (never smaller than the true distance there by more than the grid's margin)."""
@@ -196,17 +160,12 @@ class GridSDF:
         self.origin_m = np.asarray(origin_m, dtype=np.float64)
         self.step_m = float(step_m)
         self.shape = np.array(distance.shape)
-        self.values = (
+        self._values = (
             np.concatenate([distance[..., None], normals], axis=-1)
             .reshape(-1, 4)
             .astype(np.float32)
         )
-        """[X * Y * Z, 4]: distance and normal x, y, z per grid point (z fastest)."""
-
-    @property
-    def strides(self) -> tuple[int, int]:
-        """Flat index steps of x and y (z is 1)."""
-        return int(self.shape[1] * self.shape[2]), int(self.shape[2])
+        self._strides = np.array([self.shape[1] * self.shape[2], self.shape[2], 1])
 
     @classmethod
     def from_sdf(
@@ -227,85 +186,27 @@ class GridSDF:
         """points [N, 3] (any leading shape) -> distance [N], unit normals [N, 3]."""
         points = np.asarray(points, dtype=np.float64)
         lead = points.shape[:-1]
-        coords = ((points.reshape(-1, 3) - self.origin_m) / self.step_m).T.astype(np.float32)
-        upper = (self.shape - 1).astype(np.float32)[:, None]
-        result, outside = _trilinear(self.values, coords, upper, 0, self.strides)
-        distance = result[:, 0].astype(np.float64) + outside * self.step_m
-        normals = _unit(result[:, 1:]).astype(np.float64)
-        return distance.reshape(lead), normals.reshape(*lead, 3)
-
-
-class GridStack:
-    """Several :class:`GridSDF` in one array, evaluated together: the signed distance (and
-    normal) of many points in the frames of many (shape, pose) pairs in one pass, as the
-    particle filter needs. Same values as each grid's own ``__call__``."""
-
-    def __init__(self, grids: list[GridSDF]) -> None:
-        self._values = np.concatenate([grid.values for grid in grids])
-        self._distance = np.ascontiguousarray(self._values[:, :1])  # compact for misses
-        sizes = [len(grid.values) for grid in grids]
-        self._base = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        self._strides = np.array([grid.strides for grid in grids], dtype=np.int64).T  # [2, C]
-        self._upper = np.array([grid.shape - 1 for grid in grids], dtype=np.float32).T  # [3, C]
-        self._origin_m = np.array([grid.origin_m for grid in grids])
-        self._step_m = np.array([grid.step_m for grid in grids])
-
-    def distance(
-        self, shape: IntArray, rotation: FloatArray, translation: FloatArray, points_m: FloatArray
-    ) -> FloatArray:
-        """Signed distance [N, K] (m) of world points [K, 3] from N objects: grid ``shape`` [N]
-        at world_from_object rotation [N, 3, 3], translation [N, 3]."""
-        distance, _ = self._sample(self._distance, shape, rotation, translation, points_m)
-        return distance
-
-    def distance_and_normals(
-        self, shape: IntArray, rotation: FloatArray, translation: FloatArray, points_m: FloatArray
-    ) -> tuple[FloatArray, NDArray[np.float32]]:
-        """As :meth:`distance`, plus the unit outward normals [N, K, 3] in each object's
-        frame."""
-        distance, result = self._sample(self._values, shape, rotation, translation, points_m)
-        count, points = distance.shape
-        return distance, _unit(result[:, 1:]).reshape(points, count, 3).transpose(1, 0, 2)
-
-    def _sample(
-        self,
-        values: NDArray[np.float32],
-        shape: IntArray,
-        rotation: FloatArray,
-        translation: FloatArray,
-        points_m: FloatArray,
-    ) -> tuple[FloatArray, NDArray[np.float32]]:
-        """Signed distance [N, K] (m, float64) and the interpolated ``values`` rows [K N, C]
-        (point-major: row k N + n is point k seen from object n)."""
-        count, points = len(shape), len(points_m)
-        per_point = np.tile(shape, points)
-        step_x, step_y = self._strides.take(per_point, axis=1)
-        result, outside = _trilinear(
-            values,
-            self._grid_coordinates(shape, rotation, translation, points_m),
-            self._upper.take(per_point, axis=1),
-            self._base.take(per_point),
-            (step_x, step_y),
+        flat = points.reshape(-1, 3)
+        scaled = (flat - self.origin_m) / self.step_m
+        clamped = np.clip(scaled, 0.0, self.shape - 1.000001)
+        outside_m = np.linalg.norm(scaled - clamped, axis=1) * self.step_m
+        base = np.floor(clamped).astype(np.int64)
+        frac = (clamped - base).astype(np.float32)
+        index = base @ self._strides
+        result = np.zeros((flat.shape[0], 4), dtype=np.float32)
+        for dx in (0, 1):
+            wx = frac[:, 0] if dx else 1.0 - frac[:, 0]
+            for dy in (0, 1):
+                wxy = wx * (frac[:, 1] if dy else 1.0 - frac[:, 1])
+                for dz in (0, 1):
+                    weight = wxy * (frac[:, 2] if dz else 1.0 - frac[:, 2])
+                    offset = dx * self._strides[0] + dy * self._strides[1] + dz
+                    result += weight[:, None] * self._values[index + offset]
+        normals = result[:, 1:] / np.maximum(
+            np.linalg.norm(result[:, 1:], axis=1, keepdims=True), 1e-12
         )
-        step_m = np.tile(self._step_m[shape].astype(np.float32), points)
-        distance = (result[:, 0] + outside * step_m).astype(np.float64)
-        return distance.reshape(points, count).T, result
-
-    def _grid_coordinates(
-        self, shape: IntArray, rotation: FloatArray, translation: FloatArray, points_m: FloatArray
-    ) -> NDArray[np.float32]:
-        """Continuous grid indices [3, K * N] (point-major) of points [K, 3] in N objects'
-        grids: the affine maps world -> object -> grid index [3, 4, N] applied to the
-        homogeneous points [4, K] (einsum, not BLAS: a threaded BLAS stalls on a busy machine
-        for so small a product)."""
-        scaled = rotation / self._step_m[shape][:, None, None]  # [n, j, i] = (R^T)_ij / step
-        offset = -np.einsum("nji,nj->ni", scaled, translation) - (
-            self._origin_m[shape] / self._step_m[shape][:, None]
-        )
-        affine = np.concatenate([scaled, offset[:, None, :]], axis=1).transpose(2, 1, 0)
-        homogeneous = np.vstack([points_m.T, np.ones(len(points_m))]).astype(np.float32)
-        coords = np.einsum("ijn,jk->ikn", np.ascontiguousarray(affine, np.float32), homogeneous)
-        return coords.reshape(3, -1)
+        distance = result[:, 0].astype(np.float64) + outside_m
+        return distance.reshape(lead), normals.astype(np.float64).reshape(*lead, 3)
 
 
 def transform_sdf(sdf: SignedDistance, world_from_object: FloatArray) -> SignedDistance:

@@ -9,11 +9,8 @@ contacts (Drost 2010 hash tables over each class's Poisson-disk samples), weigh 
 approximation of eq. 25-27, and report the class probabilities, the maximum-likelihood
 (class, pose) and the known/novel decision of eq. 28.
 
-All particles are evaluated together through the classes' signed distance grids
-(:class:`GridStack`: trilinear in float32, within 1e-6 m and 1e-4 of each class's
-:class:`GridSDF`, whose distance is within about 1 mm (95%, at most 3 mm) of the exact mesh
-distance near the surface, against sigma_distance_m = 6 mm): observations are moved into
-each particle's object frame by one batched affine map.
+Particles of one class are evaluated together through that class's signed distance grid in
+the object frame: observations are moved by each particle's inverse pose.
 """
 
 from __future__ import annotations
@@ -30,7 +27,7 @@ from scipy.special import log_ndtr
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import ConfigError
 from vistac.plugins.touch.library import KNOWN, resolve_shape
-from vistac.plugins.touch.meshes import GridSDF, GridStack, Mesh, apply_pose, transform_sdf
+from vistac.plugins.touch.meshes import GridSDF, Mesh, apply_pose, transform_sdf
 from vistac.plugins.touch.ppf import PpfTable, Quantisation, align_pairs, point_pair_features
 from vistac.plugins.touch.types import MlePrior
 from vistac.types import FloatArray
@@ -165,7 +162,6 @@ class TouchParticleFilter(Component):
         self.classes = [self._build_class(spec, quantisation) for spec in config.classes]
         self.build_s = time.perf_counter() - start_s
         self.table_build_s = sum(c.table.build_s for c in self.classes)
-        self._grids = GridStack([c.grid for c in self.classes])
         self.particles = Particles.empty()
         self.contacts = np.zeros((0, 3))
         self.normals = np.zeros((0, 3))
@@ -200,19 +196,23 @@ class TouchParticleFilter(Component):
     ) -> FloatArray:
         """Per particle and point [N, K]: contact log likelihoods (eq. 16) when ``normals``
         [K, 3] is given, else negative-information log likelihoods (eq. 18)."""
-        if len(points) == 0 or len(particles) == 0:
-            return np.zeros((len(particles), len(points)))
-        pose = (particles.cls, particles.rotation, particles.translation)
-        if normals is None:
-            distance = self._grids.distance(*pose, points)
-            return miss_log_likelihood(distance, self.config.sigma_distance_m)
-        distance, predicted = self._grids.distance_and_normals(*pose, points)
-        observed = normals @ particles.rotation  # [N, K, 3]: R^T n, in each object frame
-        difference = observed - predicted
-        error = np.sqrt(np.einsum("nki,nki->nk", difference, difference))
-        return contact_log_likelihood(
-            distance, error, self.config.sigma_distance_m, self.config.sigma_normal
-        )
+        result = np.zeros((len(particles), len(points)))
+        if len(points) == 0:
+            return result
+        for index in np.unique(particles.cls):
+            rows = np.flatnonzero(particles.cls == index)
+            rotation, translation = particles.rotation[rows], particles.translation[rows]
+            local = np.einsum("nkj,nji->nki", points[None] - translation[:, None], rotation)
+            distance, predicted = self.classes[index].grid(local)
+            if normals is None:
+                result[rows] = miss_log_likelihood(distance, self.config.sigma_distance_m)
+                continue
+            observed = np.einsum("kj,nji->nki", normals, rotation)
+            error = np.linalg.norm(observed - predicted, axis=-1)
+            result[rows] = contact_log_likelihood(
+                distance, error, self.config.sigma_distance_m, self.config.sigma_normal
+            )
+        return result
 
     def _all_data(self, particles: Particles) -> tuple[FloatArray, FloatArray]:
         """Per particle: contact log likelihoods [N, K] and free-space log likelihoods [N, J]."""
@@ -329,8 +329,6 @@ class TouchParticleFilter(Component):
         return np.array([segment[0] for segment in segments])
 
     def _propose(self) -> None:
-        """New particles of every class from the model pairs matching the newest contact's
-        pairs (all classes in one batch), weighted by eq. 25-27."""
         partners = self._pair_partners()
         newest = len(self.contacts) - 1
         first = np.r_[np.full(len(partners), newest), partners]
@@ -339,60 +337,46 @@ class TouchParticleFilter(Component):
         keys = self.classes[0].table.quantisation.keys(
             point_pair_features(points[first], normals[first], points[second], normals[second])
         )
-        cls, model_p1, model_n1, model_p2, query = self._matching_model_pairs(keys)
-        if len(cls) == 0:
-            return
-        poses = align_pairs(
-            model_p1,
-            model_n1,
-            model_p2,
-            points[first[query]],
-            normals[first[query]],
-            points[second[query]],
-        )
-        new = Particles(cls, poses[:, :3, :3], poses[:, :3, 3], np.zeros(len(poses)))
         subset = np.r_[partners, newest]
-        new.log_weight = self._approximate_log_weights(
-            new, self.log_likelihoods(new, points[subset], normals[subset]).sum(axis=1)
+        proposals = [
+            self._class_proposals(i, keys, first, second, subset) for i in range(len(self.classes))
+        ]
+        new = [p for p in proposals if p is not None]
+        if new:
+            for particles in new:
+                self.particles = self.particles.concat(particles)
+            self.particles.log_weight -= self.particles.log_weight.max()
+
+    def _class_proposals(
+        self, index: int, keys: Any, first: Any, second: Any, subset: Any
+    ) -> Particles | None:
+        """New particles of class ``index`` from matching model pairs, weighted by eq. 27."""
+        shape = self.classes[index]
+        model_first, model_second, query = shape.table.lookup(keys)
+        if len(query) == 0:
+            return None
+        if len(query) > self.config.proposals_per_class:
+            keep = self._rng.choice(len(query), self.config.proposals_per_class, replace=False)
+            model_first, model_second, query = model_first[keep], model_second[keep], query[keep]
+        m_points, m_normals = shape.table.points, shape.table.normals
+        poses = align_pairs(
+            m_points[model_first],
+            m_normals[model_first],
+            m_points[model_second],
+            self.contacts[first[query]],
+            self.normals[first[query]],
+            self.contacts[second[query]],
         )
-        self.particles = self.particles.concat(new)
-        self.particles.log_weight -= self.particles.log_weight.max()
-
-    def _matching_model_pairs(self, keys: Any) -> tuple[Any, ...]:
-        """Model pairs matching the query ``keys``, at most ``proposals_per_class`` (a random
-        choice) per class, in class order: class [P], first point [P, 3] with its normal
-        [P, 3], second point [P, 3] (object frame) and the query each matches [P]."""
-        parts = []
-        cap = self.config.proposals_per_class
-        for index, shape in enumerate(self.classes):
-            matches = shape.table.lookup(keys)
-            if len(matches[2]) > cap:
-                keep = self._rng.choice(len(matches[2]), cap, replace=False)
-                matches = (matches[0][keep], matches[1][keep], matches[2][keep])
-            model_first, model_second, query = matches
-            table = shape.table
-            parts.append(
-                (
-                    np.full(len(query), index),
-                    table.points[model_first],
-                    table.normals[model_first],
-                    table.points[model_second],
-                    query,
-                )
-            )
-        return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
-
-    def _approximate_log_weights(self, new: Particles, subset_ll: FloatArray) -> FloatArray:
-        """Eq. 25-27 for proposals sorted by class, given their log likelihoods [P] on the
-        fixed-size contact subset: each class's best proposal is weighed on all data, the
-        others by their subset likelihood relative to that best one."""
-        classes, starts = np.unique(new.cls, return_index=True)
-        best = np.lexsort((-subset_ll, new.cls))[starts]  # the first maximum of each class
-        contact_ll, miss_ll = self._all_data(new.take(best))
-        best_total = contact_ll.sum(axis=1) + miss_ll.sum(axis=1)
-        group = np.searchsorted(classes, new.cls)
-        relative = subset_ll - subset_ll[best][group]
-        return self._reference_log_weight() + best_total[group] + relative
+        new = Particles(
+            np.full(len(poses), index), poses[:, :3, :3], poses[:, :3, 3], np.zeros(len(poses))
+        )
+        subset_ll = self.log_likelihoods(new, self.contacts[subset], self.normals[subset]).sum(1)
+        best = int(np.argmax(subset_ll))
+        contact_ll, miss_ll = self._all_data(new.take([best]))
+        best_total = float(contact_ll.sum() + miss_ll.sum())
+        reference = self._reference_log_weight()
+        new.log_weight = reference + best_total + (subset_ll - subset_ll[best])
+        return new
 
     def _reference_log_weight(self) -> float:
         """log(w_mle) - log L(all data | x_mle) of eq. 27 (0 before there is an MLE)."""

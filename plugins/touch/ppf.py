@@ -80,25 +80,31 @@ class PpfTable:
         return self.first[rows], self.second[rows], query
 
 
-def rotation_to_x(normals: FloatArray) -> FloatArray:
-    """Rotations [N, 3, 3] turning each normal [N, 3] onto +x (Rodrigues about normal x +x;
-    half a revolution about z for a normal along -x)."""
-    nx, ny, nz = normals.T
-    sin_squared = ny * ny + nz * nz
-    # R = I + [a]x + [a]x^2 (1 - cos) / sin^2 with a = n x (1, 0, 0) = (0, nz, -ny)
-    factor = np.where(sin_squared > 1e-18, (1.0 - nx) / np.maximum(sin_squared, 1e-18), 0.5)
-    rotation = np.empty((len(normals), 3, 3))
-    rotation[:, 0] = np.stack([1.0 - factor * sin_squared, ny, nz], axis=1)
-    rotation[:, 1] = np.stack([-ny, 1.0 - factor * ny * ny, -factor * ny * nz], axis=1)
-    rotation[:, 2] = np.stack([-nz, -factor * ny * nz, 1.0 - factor * nz * nz], axis=1)
-    rotation[nx < -1.0 + 1e-9] = np.diag([-1.0, -1.0, 1.0])
-    return rotation
+def frame_to_x(points: FloatArray, normals: FloatArray) -> FloatArray:
+    """Rigid transforms [N, 4, 4] moving each point to the origin and its normal onto +x."""
+    x = np.array([1.0, 0.0, 0.0])
+    axis = np.cross(normals, x)
+    sin = np.linalg.norm(axis, axis=1)
+    cos = normals @ x
+    # Rodrigues with k = axis / sin: R = I + [axis]x + [axis]x^2 (1 - cos) / sin^2
+    skew = np.zeros((len(normals), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2] = -axis[:, 2], axis[:, 1]
+    skew[:, 1, 0], skew[:, 1, 2] = axis[:, 2], -axis[:, 0]
+    skew[:, 2, 0], skew[:, 2, 1] = -axis[:, 1], axis[:, 0]
+    factor = np.where(sin > 1e-9, (1.0 - cos) / np.maximum(sin, 1e-9) ** 2, 0.5)
+    rotation = np.eye(3) + skew + factor[:, None, None] * skew @ skew
+    flipped = cos < -1.0 + 1e-9  # normal along -x: turn half a revolution about z
+    rotation[flipped] = np.diag([-1.0, -1.0, 1.0])
+    transform = np.tile(np.eye(4), (len(normals), 1, 1))
+    transform[:, :3, :3] = rotation
+    transform[:, :3, 3] = -np.einsum("nij,nj->ni", rotation, points)
+    return transform
 
 
-def _angle_about_x(rotation: FloatArray, offset: FloatArray) -> FloatArray:
-    """Angle [N] about the x axis (atan2(z, y)) of each offset [N, 3] once rotated [N, 3, 3]."""
-    moved = np.einsum("nij,nj->ni", rotation[:, 1:], offset)
-    return np.arctan2(moved[:, 1], moved[:, 0])
+def _angle_about_x(transform: FloatArray, points: FloatArray) -> FloatArray:
+    """Angle [N] of each transformed point about the x axis (atan2(z, y))."""
+    moved = np.einsum("nij,nj->ni", transform[:, :3, :3], points) + transform[:, :3, 3]
+    return np.arctan2(moved[:, 2], moved[:, 1])
 
 
 def align_pairs(
@@ -111,21 +117,11 @@ def align_pairs(
 ) -> FloatArray:
     """Poses world_from_object [N, 4, 4] taking each model pair (p1 with normal n1, p2) onto the
     scene pair: p1 onto p1, n1 onto n1, and p2 onto the half-plane of the scene's p2 (exact
-    when the features are equal). All inputs [N, 3].
-
-    Both pairs are moved to p1 at the origin with n1 along +x (rotations R_m, R_s), the model
-    is turned about x by the angle alpha between the p2s, and the scene move is undone:
-    rotation R_s^T R_x(alpha) R_m, translation scene_p1 - rotation model_p1."""
-    model_rotation, scene_rotation = rotation_to_x(model_n1), rotation_to_x(scene_n1)
-    alpha = _angle_about_x(scene_rotation, scene_p2 - scene_p1) - _angle_about_x(
-        model_rotation, model_p2 - model_p1
-    )
-    cos, sin = np.cos(alpha)[:, None], np.sin(alpha)[:, None]
-    turned = model_rotation.copy()  # R_x(alpha) R_m
-    turned[:, 1] = cos * model_rotation[:, 1] - sin * model_rotation[:, 2]
-    turned[:, 2] = sin * model_rotation[:, 1] + cos * model_rotation[:, 2]
-    poses = np.zeros((len(alpha), 4, 4))
-    poses[:, :3, :3] = scene_rotation.transpose(0, 2, 1) @ turned
-    poses[:, :3, 3] = scene_p1 - np.einsum("nij,nj->ni", poses[:, :3, :3], model_p1)
-    poses[:, 3, 3] = 1.0
-    return poses
+    when the features are equal). All inputs [N, 3]."""
+    t_model = frame_to_x(model_p1, model_n1)
+    t_scene = frame_to_x(scene_p1, scene_n1)
+    alpha = _angle_about_x(t_scene, scene_p2) - _angle_about_x(t_model, model_p2)
+    c, s = np.cos(alpha), np.sin(alpha)
+    spin = np.tile(np.eye(4), (len(alpha), 1, 1))
+    spin[:, 1, 1], spin[:, 1, 2], spin[:, 2, 1], spin[:, 2, 2] = c, -s, s, c
+    return np.asarray(np.linalg.inv(t_scene) @ spin @ t_model, dtype=np.float64)
