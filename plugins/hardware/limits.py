@@ -3,10 +3,26 @@ workspace box, in the world frame (= the robot base frame, DESIGN §5)."""
 
 from __future__ import annotations
 
+import numpy as np
 from pydantic import Field, model_validator
 from vistac.component import ComponentConfig
+from vistac.types import FloatArray
 
 AXES = ("x", "y", "z")
+
+
+def leaving_workspace(position_m: FloatArray, velocity_mps: FloatArray, low_m: FloatArray,
+                      high_m: FloatArray, tolerance_m: float) -> str | None:
+    """Why a move at velocity [3] from position [3] (both world frame) would leave the box
+    [low_m, high_m] it is on the boundary of, e.g. ``"x max = 0.300 m"``; None when it does
+    not."""
+    at_low = (position_m <= low_m + tolerance_m) & (velocity_mps < 0)
+    at_high = (position_m >= high_m - tolerance_m) & (velocity_mps > 0)
+    if not np.any(at_low | at_high):
+        return None
+    axis = int(np.argmax(at_low | at_high))
+    side, limit = ("min", low_m[axis]) if at_low[axis] else ("max", high_m[axis])
+    return f"{AXES[axis]} {side} = {limit:.3f} m"
 
 
 class ArmLimits(ComponentConfig):

@@ -18,7 +18,7 @@ import logging
 import numpy as np
 from vistac.component import Component, ComponentContext
 from vistac.errors import PluginError, SafetyError
-from vistac.plugins.hardware.limits import AXES, ArmLimits
+from vistac.plugins.hardware.limits import ArmLimits, leaving_workspace
 from vistac.plugins.hardware.sim.world import MujocoWorld
 from vistac.types import ArmState, FloatArray
 
@@ -84,16 +84,11 @@ class SimArm(Component):
 
     def _refuse_leaving(self, velocity_mps: FloatArray) -> None:
         target = self._target()[:3]
-        at_low = (target <= self._low + _BOUNDARY_TOLERANCE_M) & (velocity_mps < 0)
-        at_high = (target >= self._high - _BOUNDARY_TOLERANCE_M) & (velocity_mps > 0)
-        if np.any(at_low | at_high):
-            axis = int(np.argmax(at_low | at_high))
-            side, limit = ("min", self._low[axis]) if at_low[axis] else ("max", self._high[axis])
+        reason = leaving_workspace(target, velocity_mps, self._low, self._high,
+                                   _BOUNDARY_TOLERANCE_M)
+        if reason is not None:
             self.stop()
-            raise SafetyError(
-                f"arm motion refused: it would leave the workspace "
-                f"({AXES[axis]} {side} = {limit:.3f} m)"
-            )
+            raise SafetyError(f"arm motion refused: it would leave the workspace ({reason})")
 
     def stop(self) -> None:
         """Zero the velocity and hold the current pose."""

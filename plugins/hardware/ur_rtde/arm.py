@@ -39,7 +39,7 @@ from pydantic import Field
 from vistac.component import Component, ComponentContext
 from vistac.errors import HardwareError, SafetyError
 from vistac.plugins.hardware.deadline import call_with_deadline
-from vistac.plugins.hardware.limits import AXES, ArmLimits
+from vistac.plugins.hardware.limits import AXES, ArmLimits, leaving_workspace
 from vistac.plugins.hardware.ur_rtde.frames import arm_pose, tcp_pose
 from vistac.plugins.hardware.ur_rtde.probe import probe_controller
 from vistac.types import ArmState, FloatArray
@@ -219,16 +219,11 @@ class URArm(Component):
 
     def _limit_to_workspace(self, velocity_mps: FloatArray, position_m: FloatArray) -> FloatArray:
         """Refuse outward motion at the boundary; limit components that would cross it."""
-        at_low = (position_m <= self._low + _BOUNDARY_TOLERANCE_M) & (velocity_mps < 0)
-        at_high = (position_m >= self._high - _BOUNDARY_TOLERANCE_M) & (velocity_mps > 0)
-        if np.any(at_low | at_high):
-            axis = int(np.argmax(at_low | at_high))
-            side, limit = ("min", self._low[axis]) if at_low[axis] else ("max", self._high[axis])
+        reason = leaving_workspace(position_m, velocity_mps, self._low, self._high,
+                                   _BOUNDARY_TOLERANCE_M)
+        if reason is not None:
             self.stop()
-            raise SafetyError(
-                f"arm motion refused: it would leave the workspace "
-                f"({AXES[axis]} {side} = {limit:.3f} m)"
-            )
+            raise SafetyError(f"arm motion refused: it would leave the workspace ({reason})")
         lookahead_s = self.config.lookahead_s
         highest = (self._high - position_m) / lookahead_s
         lowest = (self._low - position_m) / lookahead_s
