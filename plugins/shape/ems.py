@@ -38,6 +38,7 @@ from vistac.errors import DataError
 from vistac.plugins.shape.superquadric import (
     distance_to_surface_m,
     inside_outside,
+    radial_depth_m,
     radial_distance_gradient,
     radial_distance_m,
     surface_area_m2,
@@ -157,23 +158,25 @@ class _Problem:
             full[:, _Z] = full[:, _A3]
         return full
 
+    def _local(self, full: FloatArray) -> FloatArray:
+        """The points in each superquadric's frame: full [B, 14] -> [B, N, 3]."""
+        rotation = rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
+        return np.matmul(self.points_m - full[:, None, [_X, _Y, _Z]], rotation)
+
     def distances(self, full: FloatArray) -> FloatArray:
         """Radial distance of every point to each superquadric: full [B, 14] -> [B, N]."""
-        rotation = rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
-        centre = full[:, [_X, _Y, _Z]]
-        local = np.matmul(self.points_m - centre[:, None, :], rotation)
-        return radial_distance_m(local, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER])
+        return radial_distance_m(self._local(full), full[:, _SCALE], full[:, _EXPONENTS],
+                                 full[:, _TAPER])
 
     def inside(self, full: FloatArray) -> FloatArray:
         """Whether each point lies inside each superquadric: full [B, 14] -> [B, N]."""
-        rotation = rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
-        centre = full[:, [_X, _Y, _Z]]
-        local = np.matmul(self.points_m - centre[:, None, :], rotation)
-        return inside_outside(local, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER]) < 1
+        return inside_outside(self._local(full), full[:, _SCALE], full[:, _EXPONENTS],
+                              full[:, _TAPER]) < 1
 
     def penetration(self, full: FloatArray) -> FloatArray:
         """Radial depth of the points inside each superquadric (0 outside): [B, N]."""
-        return self.distances(full) * self.inside(full)
+        return radial_depth_m(self._local(full), full[:, _SCALE], full[:, _EXPONENTS],
+                              full[:, _TAPER])
 
     def distance_gradient(self, params: FloatArray) -> FloatArray:
         """Gradient [N, F] of each point's radial distance to the superquadric of params [14]
@@ -230,11 +233,12 @@ def rotation_zyx(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatA
     """Rz(yaw) Ry(pitch) Rx(roll) for angle arrays [B]. Returns [B, 3, 3]."""
     cy, sy, cp, sp, cr, sr = (np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch),
                               np.cos(roll), np.sin(roll))
-    return np.stack([
-        np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], axis=-1),
-        np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], axis=-1),
-        np.stack([-sp, cp * sr, cp * cr], axis=-1),
-    ], axis=-2)
+    rotation = np.empty((*np.shape(yaw), 3, 3))
+    rotation[..., 0, 0], rotation[..., 0, 1] = cy * cp, cy * sp * sr - sy * cr
+    rotation[..., 0, 2], rotation[..., 1, 0] = cy * sp * cr + sy * sr, sy * cp
+    rotation[..., 1, 1], rotation[..., 1, 2] = sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    rotation[..., 2, 0], rotation[..., 2, 1], rotation[..., 2, 2] = -sp, cp * sr, cp * cr
+    return rotation
 
 
 def _rotation_derivatives(params: FloatArray, rotation: FloatArray) -> list[FloatArray]:
@@ -285,20 +289,21 @@ def _principal_frame(points_m: FloatArray, on_table: bool) -> FloatArray:
     return frame
 
 
-def _dense_points(points_m: FloatArray) -> FloatArray:
-    """The points [M, 3] whose distance to their ``_DENSITY_NEIGHBOURS``-th neighbour is at most
-    ``_DENSITY_KEEP_RATIO`` times the median: surface points, without most uniform outliers
-    (which would otherwise inflate the initial extent, notably towards unseen sides)."""
+def _dense_mask(points_m: FloatArray) -> NDArray[np.bool_]:
+    """Mask [N] of the points whose distance to their ``_DENSITY_NEIGHBOURS``-th neighbour is
+    at most ``_DENSITY_KEEP_RATIO`` times the median: surface points, without most uniform
+    outliers (which would otherwise inflate the initial extent, notably towards unseen
+    sides)."""
     if len(points_m) <= 2 * _DENSITY_NEIGHBOURS:
-        return points_m
+        return np.ones(len(points_m), dtype=bool)
     spacing = cKDTree(points_m).query(points_m, _DENSITY_NEIGHBOURS + 1)[0][:, -1]
-    return points_m[spacing <= _DENSITY_KEEP_RATIO * np.median(spacing)]
+    return np.asarray(spacing <= _DENSITY_KEEP_RATIO * np.median(spacing))
 
 
 def _initial_params(points_m: FloatArray, on_table: bool) -> FloatArray:
     """Initial guess [14]: principal axes and robust extents of the dense points, exponents
     0.5, no taper."""
-    points_m = _dense_points(points_m)
+    points_m = points_m[_dense_mask(points_m)]
     frame = _principal_frame(points_m, on_table)
     low, high = np.percentile(points_m @ frame, _INIT_PERCENTILES, axis=0)
     half = np.maximum(0.5 * (high - low), _MIN_SCALE_M)
@@ -624,9 +629,9 @@ def fit_links(points_m: FloatArray, options: EMSOptions, max_links: int,
     :func:`_evidence_gain` prefers it (at most ``max_links``).
 
     With the links of an earlier fit of the same object (``previous``, the last view), those
-    links are also refitted, each from where it was, and kept when they explain the points
-    better than the search's result: the split found from one view's seam can be poor in the
-    next, and a good split found earlier is not lost.
+    links are also refitted once, each from where it was, and kept when they explain the
+    points better than the search's result: the split found from one view's seam can be poor
+    in the next, and a good split found earlier is not lost.
 
     Each step tries, in turn, to split the largest link where the view from above shows a
     seam (:func:`_split_labels`) and to add a link on the largest cluster of unexplained points
@@ -641,8 +646,7 @@ def fit_links(points_m: FloatArray, options: EMSOptions, max_links: int,
             break
         links = proposal
     if previous is not None and 1 < len(previous) <= max_links:
-        again = _fit_jointly(points_m, _assign(points_m, previous), options, _REFIT_ROUNDS,
-                             previous)
+        again = _fit_jointly(points_m, _assign(points_m, previous), options, 1, previous)
         if again is not None and _evidence_gain(points_m, links, again, options) > 0:
             return again
     return links
@@ -818,6 +822,7 @@ def _fit_jointly(points_m: FloatArray, labels: IntArray, options: EMSOptions, ro
     refitted, each from its previous fit (the first round from ``initial`` when given, one
     link per label); None when a link is left with fewer than ``_MIN_LINK_POINTS``."""
     links: list[EMSResult] | None = initial
+    dense = _dense_mask(points_m)
     for round_index in range(rounds):
         if round_index:
             labels = _assign(points_m, links or [])
@@ -825,20 +830,20 @@ def _fit_jointly(points_m: FloatArray, labels: IntArray, options: EMSOptions, ro
         if counts.min() < _MIN_LINK_POINTS:
             return None
         links = [_over_all_points(fit_superquadric(
-            points_m[labels == k], options, _hidden_volume(points_m[labels != k], options),
+            points_m[labels == k], options,
+            _hidden_volume(points_m[(labels != k) & dense], options),
             None if links is None else links[k]), points_m, options)
             for k in range(len(counts))]
     return links
 
 
-def _hidden_volume(points_m: FloatArray, options: EMSOptions) -> FloatArray | None:
+def _hidden_volume(dense_m: FloatArray, options: EMSOptions) -> FloatArray | None:
     """Points [M, 3] inside the other links, which a link must not enclose: on a table, the
-    columns below (a subset of) their dense points at ``_EXCLUSION_LEVELS`` of their height;
-    None off the table or with too few points."""
-    if not options.on_table or len(points_m) < _MIN_LINK_POINTS:
+    columns below (a subset of) their dense points [K, 3] at ``_EXCLUSION_LEVELS`` of their
+    height; None off the table or with too few points."""
+    if not options.on_table or len(dense_m) < _MIN_LINK_POINTS:
         return None
-    dense = _dense_points(points_m)
-    dense = dense[np.random.default_rng(0).permutation(len(dense))[:_EXCLUSION_POINTS]]
+    dense = dense_m[np.random.default_rng(0).permutation(len(dense_m))[:_EXCLUSION_POINTS]]
     levels = np.asarray(_EXCLUSION_LEVELS)
     columns = np.repeat(dense[None, :, :], len(levels), axis=0)
     columns[:, :, 2] *= levels[:, None]

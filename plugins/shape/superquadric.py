@@ -94,10 +94,17 @@ def radial_surface_points(
     This is the closest-point approximation of EMS: exact for spheres, and within a few
     percent of the true distance for points near the surface. Returns [..., N, 3].
     """
+    return _radial_surface(points, scale_m, exponents, taper)[0]
+
+
+def _radial_surface(
+    points: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`radial_surface_points` [..., N, 3] and log F of eq. 1 per point [..., N]."""
     untapered = remove_taper(points, scale_m, taper)
-    log_f = np.maximum(log_inside_outside(untapered, scale_m, exponents), _MIN_LOG_F)
-    radial_scale = np.exp(-0.5 * exponents[..., 0, None] * log_f)
-    return apply_taper(untapered * radial_scale[..., None], scale_m, taper)
+    log_f = log_inside_outside(untapered, scale_m, exponents)
+    radial_scale = np.exp(-0.5 * exponents[..., 0, None] * np.maximum(log_f, _MIN_LOG_F))
+    return apply_taper(untapered * radial_scale[..., None], scale_m, taper), log_f
 
 
 def radial_distance_m(
@@ -106,6 +113,15 @@ def radial_distance_m(
     """Distance from each point [..., N, 3] to its radial surface point. Returns [..., N]."""
     surface = radial_surface_points(points, scale_m, exponents, taper)
     return np.linalg.norm(points - surface, axis=-1)
+
+
+def radial_depth_m(
+    points: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
+) -> FloatArray:
+    """:func:`radial_distance_m` of the points inside the superquadric (F < 1), 0 outside:
+    [..., N]."""
+    surface, log_f = _radial_surface(points, scale_m, exponents, taper)
+    return np.linalg.norm(points - surface, axis=-1) * (log_f < 0)
 
 
 def _logaddexp_weight(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
