@@ -52,6 +52,17 @@ _EDGE_ROBOT, _EDGE_JOINT, _EDGE_SUPPORT = 1, 2, 3
 _INITIAL_STD = (0.001, 0.001, 0.01, 0.005, 0.005, 0.05)
 """Initial learned process noise std per field: m, m, rad, m/s, m/s, rad/s."""
 _OUTPUT_INIT_SCALE = 0.1
+_LINK_FEATURE_SCALES = (
+    *(SIZE_SCALE_M, SIZE_SCALE_M, 1.0, SPEED_SCALE_MPS, SPEED_SCALE_MPS, RATE_SCALE_RADPS),
+    *(1.0, 1.0, MASS_SCALE_KG, FRICTION_SCALE, SIZE_SCALE_M, SIZE_SCALE_M),
+    *(SIZE_SCALE_M, SIZE_SCALE_M),
+)
+"""What each link feature is divided by (motion, cos/sin, parameters, size)."""
+_ROBOT_FEATURE_SCALES = (
+    *(1.0, 1.0, 1.0, SPEED_SCALE_MPS, SPEED_SCALE_MPS, RATE_SCALE_RADPS),
+    *(1.0, 1.0, 1.0),
+)
+"""What each robot feature is divided by (motion, cos/sin, is_pull)."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -74,7 +85,8 @@ def wrap(angle_rad: Tensor) -> Tensor:
 def rotate(xy: Tensor, angle_rad: Tensor) -> Tensor:
     """Rotate vectors xy [..., 2] by angle_rad [...] (broadcast)."""
     c, s = torch.cos(angle_rad), torch.sin(angle_rad)
-    return torch.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], -1)
+    x, y = xy.unbind(-1)
+    return torch.stack([c * x - s * y, s * x + c * y], -1)
 
 
 def perp(xy: Tensor) -> Tensor:
@@ -110,26 +122,25 @@ def link_features(states: Tensor, inputs: ProcessInput) -> Tensor:
     """Per-link features in the reference frame: [..., C, L, LINK_FEATURE_DIM]."""
     layout = layout_of(states)
     pose = layout.link_pose(states)
-    params = layout.link_parameters(states)
     origin, angle = _frame(inputs)
     angle_l = angle.unsqueeze(-1)  # [..., 1, 1]
-    xy = rotate(pose[..., :2] - origin.unsqueeze(-2), -angle_l)
+    position_velocity = torch.stack([pose[..., :2] - origin.unsqueeze(-2), pose[..., 3:5]], -2)
+    xy, velocity = rotate(position_velocity, -angle_l.unsqueeze(-1)).unbind(-2)
     theta = wrap(pose[..., 2] - angle_l)
-    velocity = rotate(pose[..., 3:5], -angle_l)
     size = inputs.link_size_m.unsqueeze(-3).expand(*pose.shape[:-1], 2)
-    scales = pose.new_tensor([MASS_SCALE_KG, FRICTION_SCALE, SIZE_SCALE_M, SIZE_SCALE_M])
-    return torch.cat(
+    features = torch.cat(
         [
-            xy / SIZE_SCALE_M,
+            xy,
             theta.unsqueeze(-1),
-            velocity / SPEED_SCALE_MPS,
-            pose[..., 5:6] / RATE_SCALE_RADPS,
+            velocity,
+            pose[..., 5:6],
             torch.stack([torch.cos(theta), torch.sin(theta)], -1),
-            params / scales,
-            size / SIZE_SCALE_M,
+            layout.link_parameters(states),
+            size,
         ],
         -1,
     )
+    return features / features.new_tensor(_LINK_FEATURE_SCALES)
 
 
 def robot_features(inputs: ProcessInput) -> Tensor:
@@ -138,21 +149,18 @@ def robot_features(inputs: ProcessInput) -> Tensor:
     tcp = inputs.tcp
     yaw = wrap(tcp[..., 2] - inputs.pd_rad)
     velocity = rotate(tcp[..., 3:5], -inputs.pd_rad)
-    zero = torch.zeros_like(yaw)
-    return torch.stack(
+    is_pull = inputs.is_pull.to(tcp.dtype)
+    features = torch.cat(
         [
-            zero,
-            zero,
-            yaw,
-            velocity[..., 0] / SPEED_SCALE_MPS,
-            velocity[..., 1] / SPEED_SCALE_MPS,
-            tcp[..., 5] / RATE_SCALE_RADPS,
-            torch.cos(yaw),
-            torch.sin(yaw),
-            inputs.is_pull.to(tcp.dtype),
+            yaw.new_zeros(*yaw.shape, 2),
+            yaw.unsqueeze(-1),
+            velocity,
+            tcp[..., 5:6],
+            torch.stack([torch.cos(yaw), torch.sin(yaw), is_pull], -1),
         ],
         -1,
     )
+    return features / features.new_tensor(_ROBOT_FEATURE_SCALES)
 
 
 def integrate(states: Tensor, delta: Tensor, inputs: ProcessInput, dt_s: float) -> Tensor:
@@ -160,14 +168,13 @@ def integrate(states: Tensor, delta: Tensor, inputs: ProcessInput, dt_s: float) 
 
     Returns the next time-varying block [..., C, 6 L] (world frame).
     """
-    layout = layout_of(states)
-    pose = layout.link_pose(states)
-    angle = _frame(inputs)[1].unsqueeze(-1)
-    xy = pose[..., :2] + rotate(delta[..., :2], angle) * (SPEED_SCALE_MPS * dt_s)
-    theta = pose[..., 2:3] + delta[..., 2:3] * (RATE_SCALE_RADPS * dt_s)
-    velocity = pose[..., 3:5] + rotate(delta[..., 3:5], angle) * SPEED_SCALE_MPS
-    omega = pose[..., 5:6] + delta[..., 5:6] * RATE_SCALE_RADPS
-    return torch.cat([xy, theta, velocity, omega], -1).flatten(-2)
+    pose = layout_of(states).link_pose(states)
+    angle = _frame(inputs)[1][..., None, None]  # [..., 1, 1, 1]
+    planar = delta.unflatten(-1, (2, 3))  # (dx, dy, dtheta), (dvx, dvy, domega)
+    change = torch.cat([rotate(planar[..., :2], angle), planar[..., 2:]], -1).flatten(-2)
+    scales = [SPEED_SCALE_MPS * dt_s] * 2 + [RATE_SCALE_RADPS * dt_s]
+    scales += [SPEED_SCALE_MPS] * 2 + [RATE_SCALE_RADPS]
+    return (pose + change * delta.new_tensor(scales)).flatten(-2)
 
 
 def force_to_world(force: Tensor, inputs: ProcessInput) -> Tensor:
@@ -175,14 +182,67 @@ def force_to_world(force: Tensor, inputs: ProcessInput) -> Tensor:
     return rotate(force, _frame(inputs)[1]) * FORCE_SCALE_N
 
 
-def mlp(n_in: int, hidden: int, n_out: int) -> nn.Sequential:
+class MLP(nn.Sequential):
+    """Linear layers with SiLU between them, on rows [..., n_in] -> [..., n_out] (``forward``)
+    or on the concatenation of several inputs (``columns``). A SiLU may work in place: it only
+    ever gets the fresh output of the layer before."""
+
+    FEATURE_MAJOR_MIN_ROWS = 256
+    """From this many rows on, ``columns`` multiplies feature-major (see there)."""
+
+    def columns(self, *inputs: Tensor) -> Tensor:
+        """The layers on the concatenation of ``inputs`` (rows [n, d_i], or [d_i] for the same
+        values in every row; the d_i add up to n_in) -> [n_out, n] (feature-major).
+
+        With many rows, the first layer multiplies each input by its block of weight columns
+        (a constant one goes into the bias), so nothing is concatenated, and every product is
+        ``W x^T`` with the rows contiguous: for a few dozen features and thousands of rows,
+        the order the BLAS does fastest. With fewer rows, where the cost per call dominates,
+        the concatenated rows go through the layers as usual.
+        """
+        n_rows = max(len(part) if part.dim() == 2 else 0 for part in inputs)
+        if n_rows < self.FEATURE_MAJOR_MIN_ROWS:
+            rows = [part if part.dim() == 2 else part.expand(n_rows, -1) for part in inputs]
+            return self._layers(torch.cat(rows, -1), 0, feature_major=False).t()
+        first = self[0]
+        assert isinstance(first, nn.Linear)
+        blocks = first.weight.split([part.shape[-1] for part in inputs], 1)
+        bias: Tensor = first.bias
+        for part, weight in zip(inputs, blocks, strict=True):
+            if part.dim() == 1:
+                bias = torch.addmv(bias, weight, part)
+        (part, weight), *others = [
+            (part, weight) for part, weight in zip(inputs, blocks, strict=True) if part.dim() == 2
+        ]
+        hidden = torch.addmm(bias.unsqueeze(-1), weight, part.t())
+        for part, weight in others:
+            hidden = hidden.addmm_(weight, part.t())
+        return self._layers(hidden, 1, feature_major=True)
+
+    def forward(self, features: Tensor) -> Tensor:
+        output = self.columns(features.reshape(-1, features.shape[-1])).t()
+        return output.reshape(*features.shape[:-1], output.shape[-1])
+
+    def _layers(self, hidden: Tensor, start: int, feature_major: bool) -> Tensor:
+        """Layers ``start``... on rows [n, d] or, feature-major, on [d, n]."""
+        for layer in list(self)[start:]:
+            if not isinstance(layer, nn.Linear):
+                hidden = layer(hidden)
+            elif feature_major:
+                hidden = torch.addmm(layer.bias.unsqueeze(-1), layer.weight, hidden)
+            else:
+                hidden = nn.functional.linear(hidden, layer.weight, layer.bias)
+        return hidden
+
+
+def mlp(n_in: int, hidden: int, n_out: int) -> MLP:
     """Three linear layers with SiLU between them (float64); the last layer starts small so a
     fresh net outputs small values."""
-    layers = nn.Sequential(
+    layers = MLP(
         nn.Linear(n_in, hidden, dtype=DTYPE),
-        nn.SiLU(),
+        nn.SiLU(inplace=True),
         nn.Linear(hidden, hidden, dtype=DTYPE),
-        nn.SiLU(),
+        nn.SiLU(inplace=True),
         nn.Linear(hidden, n_out, dtype=DTYPE),
     )
     with torch.no_grad():
@@ -232,13 +292,13 @@ class _EffectRows:
     """One effect phase: the messages from the children of the links at one depth."""
 
     updated: Tensor
-    """Rows of the links with any child [n C]."""
+    """Rows of the links with any child [n C], in the order they first appear in
+    ``receivers``."""
     receivers: Tensor
     """Rows of the links with a child on side +1, then of those with one on side -1."""
-    slots: Tensor
-    """Where each of ``receivers`` is in ``updated``."""
-    side_sizes: list[int]
-    """How many of ``receivers`` belong to each side."""
+    slots: Tensor | None
+    """Where each of ``receivers`` is in ``updated`` (side +1 first: summed in that order);
+    None where every link has one child, so that ``receivers`` is ``updated``."""
     senders: Tensor
     """Rows of those children, both sides in that order."""
     edges: Tensor
@@ -254,6 +314,7 @@ class _Chain:
     def __init__(self, acted: tuple[int, ...], n_links: int, n_points: int) -> None:
         self.n_links, self.n_points = n_links, n_points
         self.n_rows = len(acted) * n_points * n_links
+        self.n_joint_rows = len(acted) * n_points * (n_links - 1)
         acted_links = torch.tensor(acted, dtype=torch.int64)
         link = torch.arange(n_links)
         self._depth = (link - acted_links[:, None]).abs()  # [B, L]
@@ -261,8 +322,8 @@ class _Chain:
         self.acted_rows = self._rows(torch.arange(len(acted)), acted_links)
         """[B C]: rows of the acted links, in the order (b C + c) of the robot rows."""
         self.cause = [self._cause_rows(depth) for depth in range(1, n_links)]
-        """Per depth 1, 2, ...: rows of the links there, of their parents, of the joint edges
-        to the parents in ``GraphProcessNet._joint_edges``, each [n C]."""
+        """Per depth 1, 2, ...: rows of the links there, of their parents, of the edges to them
+        from their parents (``joint_rows``), each [n C]."""
         self.effect = [self._effect_rows(depth) for depth in reversed(range(n_links - 1))]
         """Per depth L - 2, ..., 0: the effect phase's rows."""
 
@@ -272,10 +333,18 @@ class _Chain:
         first = (batch * self.n_points)[:, None] + torch.arange(self.n_points)
         return (first * self.n_links + (link + offset)[:, None]).reshape(-1)
 
+    def joint_rows(self, batch: Tensor, link: Tensor, side: Tensor | int) -> Tensor:
+        """Rows in ``GraphProcessNet._joint_edges`` of the edges towards the links (batch[i],
+        link[i]) across their joint on side[i] (+1 or -1), for every sigma point: [n C]."""
+        second = (torch.as_tensor(side) < 0).to(torch.int64)  # the joint's second link
+        first = (batch * self.n_points)[:, None] + torch.arange(self.n_points)
+        joint = link - second + second * self.n_joint_rows
+        return (first * (self.n_links - 1) + joint[:, None]).reshape(-1)
+
     def _cause_rows(self, depth: int) -> tuple[Tensor, Tensor, Tensor]:
         batch, link = (self._depth == depth).nonzero(as_tuple=True)
         side = self._toward[batch, link]
-        edge = self._rows(batch, link, (side < 0).to(torch.int64) * self.n_rows)
+        edge = self.joint_rows(batch, link, side)
         return self._rows(batch, link), self._rows(batch, link + side), edge
 
     def _effect_rows(self, depth: int) -> _EffectRows:
@@ -289,16 +358,15 @@ class _Chain:
             batch, at = ((self._depth == depth) & with_child).nonzero(as_tuple=True)
             receivers.append(self._rows(batch, at))
             senders.append(self._rows(batch, at + side))
-            edges.append(self._rows(batch, at, int(side < 0) * self.n_rows))
-        batch, at = ((self._depth == depth) & has_child).nonzero(as_tuple=True)
-        updated = self._rows(batch, at)
+            edges.append(self.joint_rows(batch, at, side))
+        rows = torch.cat(receivers)
+        updated = torch.tensor(list(dict.fromkeys(rows.tolist())), dtype=torch.int64)
         slot = torch.full((self.n_rows,), -1, dtype=torch.int64)
         slot[updated] = torch.arange(len(updated))
         return _EffectRows(
             updated=updated,
-            receivers=torch.cat(receivers),
-            slots=slot[torch.cat(receivers)],
-            side_sizes=[len(rows) for rows in receivers],
+            receivers=rows,
+            slots=None if len(updated) == len(rows) else slot[rows],
             senders=torch.cat(senders),
             edges=torch.cat(edges),
         )
@@ -306,8 +374,10 @@ class _Chain:
 
 @functools.lru_cache(maxsize=32)
 def chain_of(acted: tuple[int, ...], n_links: int, n_points: int) -> _Chain:
-    """The (cached) chain rows for the acted link of each batch element (CPU tensors)."""
-    return _Chain(acted, n_links, n_points)
+    """The (cached) chain rows for the acted link of each batch element (CPU tensors; normal
+    ones even when first asked for in inference mode, so that autograd can use them later)."""
+    with torch.inference_mode(False):
+        return _Chain(acted, n_links, n_points)
 
 
 class GraphProcessNet(nn.Module):
@@ -319,7 +389,8 @@ class GraphProcessNet(nn.Module):
     edges and nodes; ``tac_net`` maps the effect message towards the robot to the tactile force.
     The chain is visited breadth-first from the acted link (``inputs.link``), which may differ
     across the batch. The nodes of all batch elements and sigma points are rows of one matrix,
-    and each phase runs the MLPs once on just the rows it updates.
+    updated in place phase by phase; each phase runs the MLPs (``MLP.columns``: no concatenated
+    inputs, feature-major products for many rows) on just the rows it updates.
     """
 
     def __init__(self, hidden: int = 64) -> None:
@@ -331,10 +402,12 @@ class GraphProcessNet(nn.Module):
         self.noise = LearnedNoise()
 
     def _message(self, sender: Tensor, receiver: Tensor, edge: Tensor) -> Tensor:
-        return self.f_e(torch.cat([sender, receiver, edge], -1))
+        """f_e of sender, receiver [n, D] (or [D] for all) and edge [n, EDGE_DIM] -> [n, H]."""
+        return self.f_e.columns(sender, receiver, edge).t()
 
     def _update(self, node: Tensor, message: Tensor) -> Tensor:
-        return node + self.f_n(torch.cat([node, message], -1))
+        """The residual update of node [n, D] by message [n, H] -> [n, D]."""
+        return node + self.f_n.columns(node, message).t()
 
     def forward(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
         """states [..., C, n] -> Prediction (pose [..., C, 6 L], force_n [..., C, 2],
@@ -349,15 +422,17 @@ class GraphProcessNet(nn.Module):
         is_pull = inputs.is_pull.to(states.dtype).expand(batch).unsqueeze(-1)
         robot_edge = _edge(is_pull.expand(*batch, n_points), _EDGE_ROBOT).reshape(-1, EDGE_DIM)
         friction = layout.link_parameters(states)[..., 1].reshape(-1) / FRICTION_SCALE
-        table = _node(links.new_zeros(NODE_DIM - 3), _TABLE).expand_as(links)
-        support = self._message(table, links, _edge(friction, _EDGE_SUPPORT))  # [B C L, H]
+        support_edges = _edge(friction, _EDGE_SUPPORT)  # [B C L, EDGE_DIM]
 
         joint_edges = self._joint_edges(states, inputs)
-        nodes = self._propagate_cause(links, robot, support, robot_edge, joint_edges, chain)
-        nodes = self._propagate_effect(nodes, joint_edges, chain)
-        to_robot = self._message(nodes[chain.acted_rows], robot, robot_edge)
-        force = force_to_world(self.tac_net(to_robot).reshape(*batch, n_points, 2), inputs)
-        delta = (nodes - links)[:, :MOTION_DIM].reshape(*batch, n_points, n_links, MOTION_DIM)
+        nodes = links.clone()  # updated in place, phase by phase
+        self._propagate_cause(nodes, robot, robot_edge, support_edges, joint_edges, chain)
+        self._propagate_effect(nodes, joint_edges, chain)
+        to_robot = self._message(nodes.index_select(0, chain.acted_rows), robot, robot_edge)
+        force = self.tac_net.columns(to_robot).t().reshape(*batch, n_points, 2)
+        force = force_to_world(force, inputs)
+        delta = nodes[:, :MOTION_DIM] - links[:, :MOTION_DIM]
+        delta = delta.reshape(*batch, n_points, n_links, MOTION_DIM)
         return Prediction(
             pose=integrate(states, delta, inputs, dt_s),
             force_n=force,
@@ -366,59 +441,59 @@ class GraphProcessNet(nn.Module):
 
     @staticmethod
     def _joint_edges(states: Tensor, inputs: ProcessInput) -> Tensor:
-        """Static features of the joint edges towards each link: [2 B C L, EDGE_DIM], the
-        joint on side +1 of every link (joint l) in the first B C L rows, the one on side -1
-        (joint l - 1) in the rest; rows without such a joint hold finite filler."""
+        """Static features of the edges across each joint k towards its two links:
+        [2 B C (L - 1), EDGE_DIM], towards link k in the first B C (L - 1) rows, towards link
+        k + 1 in the rest (see ``_Chain.joint_rows``)."""
         layout = layout_of(states)
         pose = layout.link_pose(states)
         hinges = hinge_points(pose, inputs)  # [..., C, L - 1, 2]
+        receivers = torch.stack([pose[..., :-1, :2], pose[..., 1:, :2]])  # [2, ..., C, L - 1, 2]
+        geometry = rotate(hinges - receivers, -inputs.pd_rad[..., None, None]) / SIZE_SCALE_M
         friction = layout.joint_friction(states) / JOINT_FRICTION_SCALE_NM  # [..., C, L - 1]
-        no_friction = friction.new_zeros(*pose.shape[:-2], 1)  # filler beyond the chain's ends
-        no_hinge = no_friction.unsqueeze(-1).expand(*no_friction.shape, 2)
-        hinge = torch.stack([torch.cat([hinges, no_hinge], -2), torch.cat([no_hinge, hinges], -2)])
-        value = torch.stack(
-            [torch.cat([friction, no_friction], -1), torch.cat([no_friction, friction], -1)]
-        )
-        geometry = rotate(hinge - pose[..., :2], -inputs.pd_rad[..., None, None]) / SIZE_SCALE_M
-        return _edge(value, _EDGE_JOINT, geometry).reshape(-1, EDGE_DIM)
+        edges = _edge(friction.expand(geometry.shape[:-1]), _EDGE_JOINT, geometry)
+        return edges.reshape(-1, EDGE_DIM)
+
+    def _cause_update(
+        self, nodes: Tensor, rows: Tensor, sender: Tensor, edge: Tensor, support_edges: Tensor
+    ) -> None:
+        """Update ``rows`` [n] of nodes [B C L, D] in place by the cause message from sender
+        [n, D] over edge [n, EDGE_DIM] plus the table's support message (support_edges
+        [B C L, EDGE_DIM])."""
+        node = nodes.index_select(0, rows)
+        table = _node(node.new_zeros(NODE_DIM - 3), _TABLE)  # [D]: the same for every row
+        message = self._message(sender, node, edge)
+        message = message + self._message(table, node, support_edges.index_select(0, rows))
+        nodes.index_copy_(0, rows, self._update(node, message))
 
     def _propagate_cause(
         self,
-        links: Tensor,
+        nodes: Tensor,
         robot: Tensor,
-        support: Tensor,
         robot_edge: Tensor,
+        support_edges: Tensor,
         joint_edges: Tensor,
         chain: _Chain,
-    ) -> Tensor:
+    ) -> None:
         """Breadth-first from the robot: the links at depth d are updated from their parent's
-        (already updated) features plus their support message. links [B C L, D]."""
-        nodes = links
-        acted = chain.acted_rows
-        cause = self._message(robot, nodes[acted], robot_edge)
-        nodes = nodes.index_copy(0, acted, self._update(nodes[acted], cause + support[acted]))
+        (already updated) features plus their support message. nodes [B C L, D], in place."""
+        self._cause_update(nodes, chain.acted_rows, robot, robot_edge, support_edges)
         for receivers, senders, edges in chain.cause:
-            cause = self._message(nodes[senders], nodes[receivers], joint_edges[edges])
-            updated = self._update(nodes[receivers], cause + support[receivers])
-            nodes = nodes.index_copy(0, receivers, updated)
-        return nodes
+            sender, edge = nodes.index_select(0, senders), joint_edges.index_select(0, edges)
+            self._cause_update(nodes, receivers, sender, edge, support_edges)
 
-    def _propagate_effect(self, nodes: Tensor, joint_edges: Tensor, chain: _Chain) -> Tensor:
+    def _propagate_effect(self, nodes: Tensor, joint_edges: Tensor, chain: _Chain) -> None:
         """Back from the deepest links: every link with children is updated by the sum of the
-        messages from its children (the neighbours farther from the robot)."""
+        messages from its children (the neighbours farther from the robot). nodes [B C L, D],
+        in place."""
         for phase in chain.effect:
-            senders, receivers = nodes[phase.senders], nodes[phase.receivers]
-            messages = self._message(senders, receivers, joint_edges[phase.edges])
-            message = nodes.new_zeros(len(phase.updated), self.hidden)
-            sides = zip(
-                phase.slots.split(phase.side_sizes), messages.split(phase.side_sizes),
-                strict=True,
-            )  # fmt: skip
-            for slots, part in sides:  # side +1, then side -1: a link's children in order
-                message.index_add_(0, slots, part)
-            rows = phase.updated
-            nodes = nodes.index_copy(0, rows, self._update(nodes[rows], message))
-        return nodes
+            node = nodes.index_select(0, phase.receivers)
+            sender = nodes.index_select(0, phase.senders)
+            message = self._message(sender, node, joint_edges.index_select(0, phase.edges))
+            if phase.slots is not None:  # a link with two children: the sum of their messages
+                node = nodes.index_select(0, phase.updated)
+                summed = message.new_zeros(len(phase.updated), self.hidden)
+                message = summed.index_add_(0, phase.slots, message)  # side +1 first
+            nodes.index_copy_(0, phase.updated, self._update(node, message))
 
     def _link_nodes(self, states: Tensor, inputs: ProcessInput) -> Tensor:
         """[..., C, L, NODE_DIM]: link features, is_pull, type."""
