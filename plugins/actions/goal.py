@@ -18,7 +18,7 @@ import numpy as np
 from py_trees.common import Status
 from pydantic import Field
 from vistac.component import ComponentConfig
-from vistac.errors import DataError
+from vistac.errors import ConfigError, DataError
 from vistac.plugins.actions.icem import wrap_angle
 from vistac.protocols import Scene
 from vistac.tree import SkillBehaviour
@@ -36,9 +36,34 @@ def link0_pose(belief: GaussianBelief) -> FloatArray:
         raise DataError("goal pushing needs a belief over the link poses (filters.dual)") from None
 
 
+_LOOK_STD_FIELD = Field(
+    0.002, gt=0, description="correct the believed link positions with the centres of the "
+    "last look's fit, trusted to this std (m); null: use the belief alone, which drifts with "
+    "the process model's errors")
+
+
+def located_belief(behaviour: SkillBehaviour, std_m: float | None) -> GaussianBelief:
+    """The blackboard's belief with its link positions corrected by the last look's fit
+    (``observe_positions`` of the filter, which uses each fit once), written back."""
+    belief, shape = behaviour.read("belief"), behaviour.read("shape")
+    if std_m is None or shape is None:
+        return belief
+    filter_ = behaviour.component("filter")
+    if not callable(getattr(filter_, "observe_positions", None)):
+        raise ConfigError(
+            f"{type(filter_).__name__} cannot take a look as a position measurement; use "
+            "filters.dual or set look_std_m: null"
+        )
+    belief = filter_.observe_positions(shape, std_m)
+    behaviour.write("belief", belief)
+    behaviour.run.results["belief"] = belief.as_dict()  # the summary's latest belief
+    return belief
+
+
 class PlanPush(SkillBehaviour):
     """Plan the next push towards ``goal`` with the controller; writes ``action``, ``goal``
-    (absolute, in belief coordinates) and, with a filter, ``belief`` the first time."""
+    (absolute, in belief coordinates) and ``belief``: initialised the first time, later
+    located by the last look (:func:`located_belief`)."""
 
     reads = ("cloud",)
     optional_reads = ("shape", "belief")
@@ -51,6 +76,7 @@ class PlanPush(SkillBehaviour):
         goal: tuple[float, float, float] = Field(
             description="x_m, y_m of link 0's centre and its turn theta_rad from the start"
         )
+        look_std_m: float | None = _LOOK_STD_FIELD
 
     def update(self) -> Status:
         belief = self.read("belief")
@@ -58,7 +84,9 @@ class PlanPush(SkillBehaviour):
         if belief is None:
             belief = self.component("filter").initialise(scene)
             self.write("belief", belief)
-            scene = Scene(scene.cloud, scene.shape, belief)
+        else:
+            belief = located_belief(self, self.config.look_std_m)
+        scene = Scene(scene.cloud, scene.shape, belief)
         record = self.run.results.get("goal_push")
         if record is None:
             record = self._start_record(belief)
@@ -104,13 +132,19 @@ class GoalReached(SkillBehaviour):
     ``goal_push`` with the believed and, in simulation, the true errors."""
 
     reads = ("belief", "goal")
+    optional_reads = ("shape",)
+    writes = ("belief",)
+    role_fields = {"filter": "filter"}
 
     class Config(ComponentConfig):
+        filter: str = "filter"
         tolerance_m: float = Field(0.01, gt=0)
         tolerance_rad: float | None = Field(None, gt=0, description="None: position only")
+        look_std_m: float | None = _LOOK_STD_FIELD
 
     def update(self) -> Status:
-        pose, goal = link0_pose(self.read("belief")), np.asarray(self.read("goal"))
+        belief = located_belief(self, self.config.look_std_m)
+        pose, goal = link0_pose(belief), np.asarray(self.read("goal"))
         position_error_m = float(np.linalg.norm(pose[:2] - goal[:2]))
         turn_error_rad = abs(float(wrap_angle(pose[2] - goal[2])))
         record = self.run.results["goal_push"]

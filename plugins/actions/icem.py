@@ -123,8 +123,10 @@ class ICEMController(Component):
         goal = np.asarray(goal, dtype=np.float64)
         if goal.shape != (3,) or not np.all(np.isfinite(goal)):
             raise ConfigError(f"actions.icem: goal must be 3 finite numbers, got {goal!r}")
-        outline = _OutlineInLink(scene.shape)
-        best, cost = self._optimise(outline, goal, rng)
+        link0 = self.filter.layout.link_pose(self.filter.belief.mean)[0, :3].numpy()
+        outline = _OutlineInLink(scene.shape, link0)
+        with torch.inference_mode():  # rollouts only: no autograd bookkeeping at all
+            best, cost = self._optimise(outline, goal, rng)
         self.last_cost = cost
         first = self._pushes(outline, best[None, 0], None)[0][0]
         log.info(
@@ -227,16 +229,19 @@ class ICEMController(Component):
 
 
 class _OutlineInLink:
-    """Link 0's mid-height outline in its own frame, placed at any pose.
+    """Link 0's mid-height outline in the belief's link-0 frame, placed at any pose.
 
-    points [P, 2] (m) and outward normals [P, 2], counter-clockwise from the fitted
-    superquadric, relative to the shape's pose of link 0."""
+    points [P, 2] (m) and outward normals [P, 2], counter-clockwise: the outline of the
+    fitted link nearest to the belief's link 0, seen from the belief's pose of link 0
+    ``belief_pose`` (x_m, y_m, theta_rad), so that at that pose it lies where the fit saw it
+    (the fit's own axes, which may be any of its symmetries, do not matter)."""
 
-    def __init__(self, shape: ShapeEstimate, count: int = 360) -> None:
-        points, normals = link_outline(shape.links[0], count)
-        x, y, theta = np.asarray(shape.initial_poses[0], dtype=np.float64)
-        rotation = _rotation(-theta)
-        self.points = (points - [x, y]) @ rotation.T
+    def __init__(self, shape: ShapeEstimate, belief_pose: FloatArray, count: int = 360) -> None:
+        centres = np.asarray(shape.initial_poses, dtype=np.float64)[:, :2]
+        nearest = int(np.linalg.norm(centres - belief_pose[:2], axis=1).argmin())
+        points, normals = link_outline(shape.links[nearest], count)
+        rotation = _rotation(-float(belief_pose[2]))
+        self.points = (points - belief_pose[:2]) @ rotation.T
         self.normals = normals @ rotation.T
 
     def at(self, fraction: FloatArray, poses: FloatArray) -> tuple[FloatArray, FloatArray]:

@@ -115,6 +115,23 @@ def known_parameters(
     return Belief(mean, cov)
 
 
+def position_update(belief: Belief, rows: Sequence[int], measured: torch.Tensor,
+                    std_m: float) -> Belief:
+    """Kalman update of ``belief`` with a direct measurement [k] of its entries ``rows``
+    (k indices) of noise std ``std_m``; Joseph form, so the covariance stays symmetric
+    positive definite."""
+    n = belief.mean.shape[-1]
+    observe = torch.zeros(len(rows), n, dtype=DTYPE)
+    observe[torch.arange(len(rows)), torch.as_tensor(list(rows))] = 1.0
+    noise = torch.eye(len(rows), dtype=DTYPE) * std_m**2
+    innovation_cov = observe @ belief.cov @ observe.T + noise
+    gain = torch.linalg.solve(innovation_cov, observe @ belief.cov).T  # [n, k]
+    mean = belief.mean + gain @ (measured - observe @ belief.mean)
+    keep = torch.eye(n, dtype=DTYPE) - gain @ observe
+    cov = keep @ belief.cov @ keep.T + gain @ noise @ gain.T
+    return Belief(mean, 0.5 * (cov + cov.T))
+
+
 def nearest_link(points_m: FloatArray, poses: FloatArray, sizes: FloatArray) -> FloatArray:
     """Index [N] of the link whose footprint box (size-normalised) is nearest to each point."""
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
@@ -202,6 +219,7 @@ class DualFilterComponent(Component):
         self.belief: Belief | None = None
         self.prior: Belief | None = None
         self.shape: ShapeEstimate | None = None
+        self._observed_shape: ShapeEstimate | None = None
         self.history: list[dict[str, Any]] = []
 
     # -- Filter protocol ------------------------------------------------------------------
@@ -209,7 +227,7 @@ class DualFilterComponent(Component):
     def initialise(self, scene: Scene) -> GaussianBelief:
         if scene.shape is None:
             raise DataError("filters.dual: no shape estimate; run `look` with a shape estimator")
-        self.shape = scene.shape
+        self.shape = self._observed_shape = scene.shape
         poses, _ = link_boxes(scene.shape)
         self.layout = StateLayout(len(poses))
         if self.model.n_links not in (None, self.layout.n_links):
@@ -370,6 +388,29 @@ class DualFilterComponent(Component):
                 ),
             },
         )
+
+    def observe_positions(self, shape: ShapeEstimate, std_m: float) -> GaussianBelief:
+        """A look as a measurement: Kalman update of the link positions (x_i, y_i) with the
+        centres of a fresh fit, each belief link matched to the nearest fitted link, with a
+        measurement noise of ``std_m`` per coordinate. The correlated entries (twist,
+        parameters) move with them. Unchanged when the fit has another link count."""
+        if self.belief is None or self.layout is None:
+            raise DataError("filters.dual: observe_positions before initialise")
+        if shape is self._observed_shape:
+            return self._public()  # a measurement counts once
+        self._observed_shape = shape
+        fitted = np.asarray(shape.initial_poses, dtype=np.float64)[:, :2]
+        believed = self.layout.link_pose(self.belief.mean).numpy()[:, :2]
+        if len(fitted) != len(believed):
+            log.warning("look: %d fitted link(s) for %d in the belief; belief not corrected",
+                        len(fitted), len(believed))  # fmt: skip
+            return self._public()
+        match = np.linalg.norm(believed[:, None] - fitted[None], axis=-1).argmin(axis=1)
+        rows = [self.layout.index(f"{axis}_{i}") for i in range(len(believed)) for axis in "xy"]
+        self.belief = position_update(
+            self.belief, rows, torch.as_tensor(fitted[match].reshape(-1), dtype=DTYPE), std_m
+        )
+        return self._public()
 
     def step_history(self) -> list[dict[str, Any]]:
         """The belief after every filter step so far: episode, time_s and per entry
