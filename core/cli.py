@@ -231,22 +231,56 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     if not args.skill.is_file():
         raise ConfigError(f"{args.skill}: no such collection skill file")
+    if args.selection is not None:
+        return _train_active(args)
+    active_only = [f"--{name.replace('_', '-')}" for name in ("rounds", "threshold", "per_round")
+                   if getattr(args, name) is not None]  # fmt: skip
+    if active_only:
+        raise ConfigError(f"{', '.join(active_only)}: only with --selection (active training)")
     report = train(args.skill, args.out, load_preset(args.preset), args.data or None)
     print(f"trained in {report['time_s']:.0f} s; checkpoints and train.json in {args.out}")
     return 0
 
 
+def _train_active(args: argparse.Namespace) -> int:
+    from vistac.plugins.filters.active import active_settings, summary_lines, train_active
+    from vistac.plugins.filters.train import load_preset
+
+    if args.data:
+        raise ConfigError("--data: active training collects its own data; drop --data")
+    config = load_preset(args.preset)  # checks the preset before its active block is read
+    active = active_settings(
+        args.preset, selection=args.selection, max_rounds=args.rounds,
+        threshold=args.threshold, per_round=args.per_round,
+    )  # fmt: skip
+    report = train_active(args.skill, args.out, config, active)
+    for line in summary_lines(report):
+        print(line)
+    print(f"trained in {report['time_s']:.0f} s; checkpoints, train.json and "
+          f"active_training.png in {args.out}")  # fmt: skip
+    return 0
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
-    from vistac.plugins.filters.evaluate import EvalOptions, evaluate, parse_models
+    from vistac.plugins.actions.campaign import is_goal_skill
+    from vistac.plugins.filters.evaluate import (
+        EvalOptions,
+        evaluate,
+        parse_models,
+        parse_variants,
+    )
     from vistac.plugins.touch.campaign import is_touch_skill
 
     if not args.skill.is_file():
         raise ConfigError(f"{args.skill}: no such skill file")
     if is_touch_skill(args.skill):
         return _eval_touch(args)
+    if is_goal_skill(args.skill):
+        return _eval_goal(args)
     options = EvalOptions(
         skill=args.skill, out=args.out, objects=tuple(args.objects),
         checkpoints=args.checkpoints, models=parse_models(args.models),
+        variants=parse_variants(args.variants),
         max_objects=args.max_objects, max_interactions=args.max_interactions, seed=args.seed,
         overrides=tuple(args.set),
     )  # fmt: skip
@@ -279,6 +313,25 @@ def _eval_touch(args: argparse.Namespace) -> int:
               f"{record['reason']}")
     print(f"evaluated {len(report['records']) - len(failed)} touch runs; eval.json and "
           f"tables.md in {args.out}")
+    return 0
+
+
+def _eval_goal(args: argparse.Namespace) -> int:
+    from vistac.plugins.actions.campaign import GoalEvalOptions, evaluate_goal
+
+    objects = ("all",) if args.objects == ["test"] else tuple(args.objects)
+    options = GoalEvalOptions(
+        skill=args.skill, out=args.out, objects=objects, trials=args.trials, seed=args.seed,
+        overrides=tuple(args.set),
+    )  # fmt: skip
+    report = evaluate_goal(options)
+    print((args.out / "tables.md").read_text(encoding="utf-8"))
+    failed = [r for r in report["records"] if r["status"] != "ok"]
+    for record in failed:
+        print(f"failed: {record['mode']} on {record['object']} trial {record['trial']}: "
+              f"{record['reason']}")  # fmt: skip
+    print(f"evaluated {len(report['records']) - len(failed)} goal-push runs; eval.json and "
+          f"tables.md in {args.out}")  # fmt: skip
     return 0
 
 
@@ -342,25 +395,44 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument(
         "--data", type=Path, action="append", help="train on these recorded run folders instead"
     )
+    train.add_argument(
+        "--selection", choices=("info_gain", "uniform", "random"),
+        help="active iterative training: rounds of interactions chosen by this selector, "
+        "training on a replay buffer until the validation error reaches the threshold "
+        "(info_gain needs a skill with a filter, e.g. explore_active.yaml)",
+    )  # fmt: skip
+    train.add_argument("--rounds", type=int, help="active: most training rounds (seed included)")
+    train.add_argument("--threshold", type=float, help="active: validation error to reach")
+    train.add_argument("--per-round", type=int, help="active: interactions per object per round")
     train.set_defaults(func=cmd_train)
 
     evaluate = sub.add_parser(
-        "eval", help="compare the process models on a set of objects, or, for a touch skill, "
-        "recognition over objects x random poses x explorers",
+        "eval", help="compare the process models on a set of objects; for a touch skill, "
+        "recognition over objects x random poses x explorers; for a goal-push skill, the final "
+        "error with estimated vs default parameters over objects x trials",
     )  # fmt: skip
     evaluate.add_argument("skill", type=Path, help="the exploration skill, e.g. explore_push.yaml")
     evaluate.add_argument("--out", type=Path, required=True, help="evaluation folder")
     evaluate.add_argument(
         "--objects", nargs="+", default=["test"], metavar="SPLIT|YAML",
         help="test, val, train (the generated set) or object YAML files; for touch skills "
-        "known, novel, class names or mesh files (default known)",
+        "known, novel, class names or mesh files (default known); for goal-push skills names "
+        "in the skill's objects/ folder, comma-separated, or all (default all)",
     )  # fmt: skip
     evaluate.add_argument(
         "--checkpoints",
         type=Path,
         help="a `vistac train` folder (default: the skill's checkpoints/)",
     )
-    evaluate.add_argument("--models", default="gnn,ff,analytical", help="comma-separated")
+    evaluate.add_argument(
+        "--models", default="gnn,ff,analytical",
+        help="comma-separated; evaluate only the variants of these process models",
+    )  # fmt: skip
+    evaluate.add_argument(
+        "--variants", default="a-gnn,u-gnn,r-gnn,a-ff,a-analytical,gnn-fixed",
+        help="comma-separated model x action selector columns: a-gnn (info gain), u-gnn "
+        "(uniform), r-gnn (random), a-ff, a-analytical, gnn-fixed (no parameter estimation)",
+    )  # fmt: skip
     evaluate.add_argument(
         "--max-objects", type=int, default=None, help="evaluate at most N objects"
     )
@@ -370,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--seed", type=int, default=None, help="override the skill's seed")
     evaluate.add_argument(
         "--trials", type=int, default=10,
-        help="touch skills: random poses per object (seeds SEED .. SEED + N - 1)",
+        help="touch and goal-push skills: trials per object (seeds SEED .. SEED + N - 1)",
     )  # fmt: skip
     evaluate.add_argument(
         "--explorers", default="dhd,rrt", help="touch skills: comma-separated, dhd and/or rrt"

@@ -4,23 +4,45 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+import torch
 from vistac.cli import main
 from vistac.objects import generate_configurations, object_from_dict
 from vistac.plugins.filters.evaluate import (
+    EvalOptions,
+    chosen_variants,
     match_links,
     nrmse,
+    nrmse_by_interaction,
     nrmse_rows,
+    nrmse_tables,
     parameter_pairs,
     parameter_ranges,
+    parse_variants,
+    plan_runs,
+    planner_override,
     pose_change_errors,
+    run_dir_of,
+    tables_markdown,
+    tracking_table,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
 RANGES = {"m": 1.4, "f": 0.4, "CoM": 0.05, "f_j": 0.5}
+
+
+@pytest.fixture(autouse=True)
+def single_thread() -> Iterator[None]:
+    """Tiny matrices: one thread avoids OpenMP spin-waits on a shared 2-core machine."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
 
 
 def _belief(values: dict[str, float]) -> dict[str, dict[str, float]]:
@@ -120,24 +142,31 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
     out = tmp_path / "eval"
     code = main([
         "-q", "eval", str(ROOT / "skills/explore_push.yaml"), "--out", str(out),
-        "--objects", str(ROOT / "skills/objects/rect2.yaml"), "--models", "gnn,analytical",
-        "--max-interactions", "1", *FAST,
+        "--objects", str(ROOT / "skills/objects/rect2.yaml"),
+        "--variants", "a-gnn,u-gnn,a-analytical,gnn-fixed", "--max-interactions", "1", *FAST,
     ])  # fmt: skip
     assert code == 0
     for name in ("tables.md", "tables.json", "eval.json", "nrmse_vs_interactions.png",
-                 "belief_rect2_gnn.png", "belief_rect2_analytical.png"):  # fmt: skip
+                 "belief_rect2_a-gnn.png", "belief_rect2_a-analytical.png"):  # fmt: skip
         assert (out / name).stat().st_size > 0, name
     markdown = (out / "tables.md").read_text(encoding="utf-8")
-    assert "| gnn | analytical |" in markdown and "gnn_fixed" in markdown
+    assert "| parameter | A-GNN | U-GNN | A-Analytical |" in markdown
+    assert "| homogeneous | GNN-fixed |" in markdown
     tables = json.loads((out / "tables.json").read_text(encoding="utf-8"))
     report = json.loads((out / "eval.json").read_text(encoding="utf-8"))
     assert report["interaction"] == "push"
+    assert report["variants"]["U-GNN"] == {
+        "model": "gnn", "selector": "uniform", "estimate_parameters": True
+    }  # fmt: skip
     cell = tables["tables"]["homogeneous"]["push"]
-    assert set(cell) == {"gnn", "analytical"}
+    assert list(cell) == ["A-GNN", "U-GNN", "A-Analytical"]
     ranges = tables["ranges"]
     assert ranges["CoM"] == pytest.approx(parameter_ranges()["CoM"])
-    for model in ("gnn", "analytical"):
-        summary = json.loads((out / "runs/rect2" / model / "summary.json").read_text())
+    for key, label in (("a-gnn", "A-GNN"), ("a-analytical", "A-Analytical")):
+        run_dir = out / "runs/rect2" / key
+        summary = json.loads((run_dir / "summary.json").read_text())
+        planner = json.loads((run_dir / "run.json").read_text())["config"]["components"]["planner"]
+        assert planner["plugin"] == "actions.info_gain"
         belief, truth = summary["belief"], summary["ground_truth"]["parameters"]
         by_hand = {
             "m_0": abs(belief["m_0"]["mean"] - truth["m_0"]) / ranges["m"],
@@ -146,23 +175,37 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
                          - math.hypot(truth["com_x_0"], truth["com_y_0"])) / ranges["CoM"],
         }  # fmt: skip
         for name, value in by_hand.items():
-            assert math.isfinite(cell[model][name])
-            assert cell[model][name] == pytest.approx(value)
-        assert cell[model]["overall"] == pytest.approx(sum(by_hand.values()) / 3)
-        assert report["nrmse_vs_interactions"][model] == pytest.approx([cell[model]["overall"]])
+            assert math.isfinite(cell[label][name])
+            assert cell[label][name] == pytest.approx(value)
+        assert cell[label]["overall"] == pytest.approx(sum(by_hand.values()) / 3)
+        assert report["nrmse_vs_interactions"][label] == pytest.approx([cell[label]["overall"]])
     tracking = tables["tracking"]["homogeneous"]
-    assert {"gnn", "gnn_fixed", "analytical"} <= set(tracking)
+    assert list(tracking) == ["A-GNN", "U-GNN", "A-Analytical", "GNN-fixed"]
     assert all(math.isfinite(v["position_m"]) and v["position_m"] < 0.05 for v in tracking.values())
+    stamp = (out / "runs/rect2/u-gnn/eval_args.json").stat().st_mtime_ns
+    code = main([
+        "-q", "eval", str(ROOT / "skills/explore_push.yaml"), "--out", str(out),
+        "--objects", str(ROOT / "skills/objects/rect2.yaml"),
+        "--variants", "u-gnn", "--max-interactions", "1", *FAST,
+    ])  # fmt: skip
+    assert code == 0  # the finished run is reused, not run again
+    assert (out / "runs/rect2/u-gnn/eval_args.json").stat().st_mtime_ns == stamp
+    report = json.loads((out / "eval.json").read_text(encoding="utf-8"))
+    assert list(report["variants"]) == ["U-GNN"]
 
 
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--models", "gnn,lstm"], "unknown model(s) 'lstm'"),
+        (["--models", "gnn,lstm"], "--models: unknown model(s) 'lstm'"),
         (["--objects", "nowhere/missing.yaml"], "neither a split"),
+        (["--variants", "a-gnn,b-gnn"], "--variants: unknown variant(s) 'b-gnn'; choose from "
+         "a-gnn, u-gnn, r-gnn, a-ff, a-analytical, gnn-fixed"),
+        (["--variants", "a-ff", "--models", "gnn"], "no variant left to evaluate"),
+        (["--variants", ","], "--variants: unknown variant(s) (none)"),
     ],
-    ids=["unknown-model", "missing-object"],
-)
+    ids=["unknown-model", "missing-object", "unknown-variant", "no-variant-left", "empty"],
+)  # fmt: skip
 def test_eval_bad_input_is_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str
 ) -> None:
@@ -171,3 +214,115 @@ def test_eval_bad_input_is_exit_2(
     )
     assert code == 2
     assert message in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# Variants: model x action selector
+
+
+def _checkpoints(folder: Path) -> Path:
+    """Fake checkpoint files (plan_runs only checks that they exist and reads the sidecars)."""
+    folder.mkdir()
+    for name, architecture in (("gnn_push.pt", {"hidden": 32}),
+                               ("ff_push.pt", {"hidden": 16, "n_links": 1})):  # fmt: skip
+        (folder / name).write_bytes(b"")
+        (folder / f"{name}.json").write_text(json.dumps({"architecture": architecture}))
+    (folder / "obs_noise_push.pt").write_bytes(b"")
+    return folder
+
+
+def test_plan_runs_sets_model_and_selector_per_variant(tmp_path: Path) -> None:
+    folder = _checkpoints(tmp_path / "ckpt")
+    rect2 = ROOT / "skills/objects/rect2.yaml"
+    artic = ROOT / "skills/objects/artic_rect_rect.yaml"
+    options = EvalOptions(
+        skill=ROOT / "skills/explore_push.yaml", out=tmp_path, checkpoints=folder,
+        max_interactions=2, overrides=("components.filter.with.sigma_points=16",),
+    )  # fmt: skip
+    plans = plan_runs(options, [rect2, artic], "push")
+    assert [(p.spec.name, p.variant.label) for p in plans] == [
+        (name, label) for name in ("rect2", "artic_rect_rect")
+        for label in ("A-GNN", "U-GNN", "R-GNN", "A-FF", "A-Analytical", "GNN-fixed")
+    ]  # fmt: skip
+    common = [
+        "components.filter.with.sigma_points=16",
+        f"components.filter.with.noise_checkpoint={folder / 'obs_noise_push.pt'}",
+        "tree.sequence.1.repeat.max=2",
+        f"components.world.with.object={rect2}",
+    ]
+    gnn = 'components.model={"plugin": "filters.gnn", "with": {"checkpoint": "%s", "hidden": 32}}'
+    gnn %= folder / "gnn_push.pt"
+    ff = ('components.model={"plugin": "filters.ff", "with": {"checkpoint": "%s", "n_links": 1, '
+          '"hidden": 16}}') % (folder / "ff_push.pt")  # fmt: skip
+    info_gain = ('components.planner={"plugin": "actions.info_gain", '
+                 '"with": {"horizon_s": 2.5, "rate_hz": 15.0}}')  # fmt: skip
+    uniform = 'components.planner={"plugin": "actions.uniform"}'
+    random = 'components.planner={"plugin": "actions.random"}'
+    analytical = 'components.model={"plugin": "filters.analytical"}'
+    expected = [
+        [*common, gnn, info_gain],
+        [*common, gnn, uniform],
+        [*common, gnn, random],
+        [*common, ff, info_gain],
+        [*common, analytical, info_gain],
+        [*common, gnn, random, "components.filter.with.estimate_parameters=false"],
+    ]
+    assert [p.overrides for p in plans[:6]] == expected
+    assert all(p.skipped is None for p in plans[:6])
+    skipped = {p.variant.key: p.skipped for p in plans[6:] if p.skipped}
+    assert set(skipped) == {"a-ff", "a-analytical"}
+    assert "no FF checkpoint for 2 link(s)" in skipped["a-ff"]
+    assert "homogeneous objects only (articulated)" in skipped["a-analytical"]
+    assert run_dir_of(tmp_path, plans[1]) == tmp_path / "runs/rect2/u-gnn"
+
+
+def test_variant_choice_and_the_skills_own_info_gain_settings(tmp_path: Path) -> None:
+    assert parse_variants(" r-gnn,a-gnn,r-gnn ") == ("r-gnn", "a-gnn")
+    options = EvalOptions(
+        skill=ROOT / "skills/explore_push.yaml", out=tmp_path, models=("gnn", "analytical"),
+        variants=("a-ff", "r-gnn", "a-gnn"),
+    )  # fmt: skip
+    assert [v.label for v in chosen_variants(options)] == ["A-GNN", "R-GNN"]
+    skill = {"rate_hz": 10, "components": {"planner": {"plugin": "actions.info_gain",
+                                                       "with": {"horizon_s": 1.0}}}}  # fmt: skip
+    assert planner_override("info_gain", skill) == (
+        'components.planner={"plugin": "actions.info_gain", "with": {"horizon_s": 1.0}}'
+    )
+    assert planner_override("info_gain", {"rate_hz": 10}) == (
+        'components.planner={"plugin": "actions.info_gain", '
+        '"with": {"horizon_s": 2.5, "rate_hz": 10.0}}'
+    )
+
+
+def _record(
+    variant: str, m_estimate: float, tracking_m: float, fixed: bool = False
+) -> dict[str, Any]:
+    pairs = {"m_0": (m_estimate, 1.0), "f_0": (0.3, 0.3)}
+    return {
+        "object": "rect2", "type": "homogeneous", "kind": "push", "variant": variant,
+        "status": "ok", "parameters": pairs, "history": [pairs],
+        "tracking": {"position_m": tracking_m, "angle_rad": 0.0, "steps": 10},
+        "estimate_parameters": not fixed,
+    }  # fmt: skip
+
+
+def test_tables_have_one_column_per_variant() -> None:
+    labels = ["A-GNN", "U-GNN", "R-GNN", "A-FF", "A-Analytical"]
+    records = [_record(label, 1.0 + 0.14 * i, 0.001 * (i + 1)) for i, label in enumerate(labels)]
+    records.append(_record("GNN-fixed", 0.0, 0.01, fixed=True))
+    tables = nrmse_tables(records, RANGES, labels)
+    cell = tables["homogeneous"]["push"]
+    assert list(cell) == labels
+    for i, label in enumerate(labels):
+        assert cell[label]["m_0"] == pytest.approx(0.14 * i / 1.4)
+        assert cell[label]["overall"] == pytest.approx(0.05 * i)  # mean of m_0 and f_0 (0)
+    tracking = tracking_table(records)
+    assert list(tracking["all"]) == [*labels, "GNN-fixed"]
+    markdown = tables_markdown(tables, tracking)
+    assert "| parameter | A-GNN | U-GNN | R-GNN | A-FF | A-Analytical |" in markdown
+    assert "| m_0 | 0.000 | 0.100 | 0.200 | 0.300 | 0.400 |" in markdown
+    assert "| homogeneous | GNN-fixed | 10.000 | 0.000 | 1 |" in markdown
+    curves = nrmse_by_interaction(records, RANGES, [*labels, "GNN-fixed"])
+    assert curves["R-GNN"] == pytest.approx([0.1])
+    assert curves["GNN-fixed"] == pytest.approx([0.5 / 1.4])  # m error 1.0 / 1.4, f error 0

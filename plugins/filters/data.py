@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +18,14 @@ import numpy as np
 import torch
 from torch import Tensor
 from vistac.errors import DataError
-from vistac.objects import ObjectSpec, link_frames, prism_surface_points, to_world_xy
+from vistac.objects import (
+    ObjectSpec,
+    link_frames,
+    prism_distance_m,
+    prism_surface_points,
+    to_link_frame,
+    to_world_xy,
+)
 from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
 from vistac.types import CameraIntrinsics, FloatArray
 
@@ -118,9 +125,29 @@ def _episode(folder: Path) -> Trajectory | None:
     )
 
 
+def acted_link(trajectory: Trajectory, contact_force_n: float = 0.3) -> int:
+    """The true link the robot acted on: the one nearest the TCP (at half the link's height)
+    at the first step whose finger force exceeds ``contact_force_n`` (else the strongest)."""
+    if trajectory.n_links == 1:
+        return 0
+    force_n = np.linalg.norm(trajectory.force_n, axis=1)
+    touching = np.flatnonzero(force_n > contact_force_n)
+    step = int(touching[0]) if touching.size else int(np.argmax(force_n))
+    distances_m = [
+        prism_distance_m(
+            to_link_frame(np.array([[*trajectory.tcp[step, :2], link.height_m / 2]]), pose),
+            link.polygon(), link.height_m,
+        )[0]
+        for link, pose in zip(trajectory.spec.links, trajectory.poses[step], strict=True)
+    ]  # fmt: skip
+    return int(np.argmin(distances_m))
+
+
 def load_trajectories(roots: list[Path], kind: str | None = None) -> list[Trajectory]:
     """Every recorded episode under the run folders ``roots`` (of one interaction ``kind``
-    when given). DataError when a folder holds none."""
+    when given), its ``link`` in the true link numbering (:func:`acted_link`: a recorded
+    action names a link of the fitted shape, or link 0 for ``actions.outline``, while
+    training builds the graph from the true links). DataError when a folder holds none."""
     trajectories: list[Trajectory] = []
     for root in roots:
         folders = sorted(p for p in (root / "episodes").glob("[0-9]*") if p.is_dir())
@@ -129,7 +156,7 @@ def load_trajectories(roots: list[Path], kind: str | None = None) -> list[Trajec
         for folder in folders:
             trajectory = _episode(folder)
             if trajectory is not None and (kind is None or trajectory.kind == kind):
-                trajectories.append(trajectory)
+                trajectories.append(replace(trajectory, link=acted_link(trajectory)))
     return trajectories
 
 

@@ -1,9 +1,13 @@
-"""``vistac eval``: compare the process models on a set of objects (paper 1, IV-B3 and IV-D).
+"""``vistac eval``: compare process models and action selectors on objects (paper 1, IV-B3, IV-D).
 
-For every object and process model the exploration skill runs once with the same seed, so the
-look and the first actions agree (the planner is ``actions.random``: the actions are random,
-not actively selected). The GNN also runs once per object with ``estimate_parameters: false``
-for the pose-tracking comparison (Fig. 15).
+For every object and variant the exploration skill runs once with the same seed, so the look
+agrees. A variant is a process model with an action selector (paper 1, IV-D, Tables II-III):
+A-GNN, A-FF and A-Analytical choose each action by N-step information gain
+(``actions.info_gain``, 2.5 s look-ahead), U-GNN by ``actions.uniform`` (evenly spaced push
+directions) and R-GNN by ``actions.random``. GNN-fixed runs the GNN with
+``estimate_parameters: false`` and the random selector for the pose-tracking comparison
+(Fig. 15): with the same seed it executes R-GNN's actions, so the two differ only in whether
+the parameters are estimated.
 
 Parameter error. NRMSE per parameter = RMSE over the runs of (estimate - truth) divided by the
 parameter's range over the object set. Mass, table friction and joint friction use the ranges
@@ -51,8 +55,32 @@ from vistac.objects import (
 log = logging.getLogger(__name__)
 
 MODELS: tuple[str, ...] = ("gnn", "ff", "analytical")
-FIXED = "gnn_fixed"
-"""The GNN run with ``estimate_parameters: false`` (pose tracking only)."""
+INFO_GAIN_HORIZON_S = 2.5
+"""Look-ahead of ``actions.info_gain`` (paper 1, IV-B2; skills/explore_active.yaml)."""
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A process model run with an action selector: one column of the tables."""
+
+    key: str
+    """``--variants`` name and run folder, e.g. ``a-gnn``."""
+    label: str
+    """Table column and ``variant`` of the eval.json records, e.g. ``A-GNN``."""
+    model: str
+    selector: str
+    estimate_parameters: bool = True
+
+
+VARIANTS: tuple[Variant, ...] = (
+    Variant("a-gnn", "A-GNN", "gnn", "info_gain"),
+    Variant("u-gnn", "U-GNN", "gnn", "uniform"),
+    Variant("r-gnn", "R-GNN", "gnn", "random"),
+    Variant("a-ff", "A-FF", "ff", "info_gain"),
+    Variant("a-analytical", "A-Analytical", "analytical", "info_gain"),
+    Variant("gnn-fixed", "GNN-fixed", "gnn", "random", estimate_parameters=False),
+)
+"""Every variant ``vistac eval`` knows, in table order."""
 FAMILIES: tuple[str, ...] = ("m", "f", "CoM", "f_j")
 """Parameter families of the tables: mass, table friction, radial CoM, joint friction."""
 SPLITS: tuple[str, ...] = ("train", "val", "test")
@@ -281,13 +309,14 @@ def run_links(run_dir: Path, summary: dict[str, Any]) -> dict[int, int]:
 
 @dataclass(frozen=True)
 class EvalOptions:
-    """What ``vistac eval`` evaluates."""
+    """What ``vistac eval`` evaluates: the variants whose model is in ``models``."""
 
     skill: Path
     out: Path
     objects: tuple[str, ...] = ("test",)
     checkpoints: Path | None = None
     models: tuple[str, ...] = MODELS
+    variants: tuple[str, ...] = tuple(variant.key for variant in VARIANTS)
     max_objects: int | None = None
     max_interactions: int | None = None
     seed: int | None = None
@@ -300,47 +329,99 @@ class RunPlan:
 
     object_path: Path
     spec: ObjectSpec
-    variant: str
+    variant: Variant
     overrides: list[str] = field(default_factory=list)
     skipped: str | None = None
 
     @property
     def model(self) -> str:
-        return "gnn" if self.variant == FIXED else self.variant
+        return self.variant.model
 
 
-def parse_models(text: str | Sequence[str]) -> tuple[str, ...]:
-    """``"gnn,ff"`` -> ("gnn", "ff"); unknown names are a ConfigError (exit 2)."""
+def _parse_names(option: str, text: str | Sequence[str], choices: Sequence[str]) -> tuple[str, ...]:
+    """``"a,b"`` -> ("a", "b"); a name not in ``choices`` is a ConfigError (exit 2)."""
     names = text.split(",") if isinstance(text, str) else list(text)
     names = [name.strip() for name in names if name.strip()]
-    unknown = [name for name in names if name not in MODELS]
+    unknown = [name for name in names if name not in choices]
     if unknown or not names:
+        what = option.removeprefix("--").removesuffix("s")
         raise ConfigError(
-            f"--models: unknown model(s) {', '.join(map(repr, unknown)) or '(none)'}; "
-            f"choose from {', '.join(MODELS)}"
+            f"{option}: unknown {what}(s) {', '.join(map(repr, unknown)) or '(none)'}; "
+            f"choose from {', '.join(choices)}"
         )
     return tuple(dict.fromkeys(names))
 
 
-def skill_interaction(skill: Path) -> str:
-    """The one interaction kind (push or pull) the skill's action sampler proposes."""
+def parse_models(text: str | Sequence[str]) -> tuple[str, ...]:
+    """``"gnn,ff"`` -> ("gnn", "ff"); unknown names are a ConfigError (exit 2)."""
+    return _parse_names("--models", text, MODELS)
+
+
+def parse_variants(text: str | Sequence[str]) -> tuple[str, ...]:
+    """``"a-gnn,r-gnn"`` -> ("a-gnn", "r-gnn"); unknown names are a ConfigError (exit 2)."""
+    return _parse_names("--variants", text, [variant.key for variant in VARIANTS])
+
+
+def chosen_variants(options: EvalOptions) -> list[Variant]:
+    """The variants of ``options.variants`` whose model is in ``options.models``, in table
+    order; none left is a ConfigError (exit 2)."""
+    chosen = [v for v in VARIANTS if v.key in options.variants and v.model in options.models]
+    if not chosen:
+        raise ConfigError(
+            f"--variants {','.join(options.variants)} with --models "
+            f"{','.join(options.models)}: no variant left to evaluate"
+        )
+    return chosen
+
+
+def read_skill(skill: Path) -> dict[str, Any]:
+    """The skill file as a mapping (safe-loaded), for reading settings before a run."""
     try:
         data = yaml.safe_load(skill.read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError) as error:
         raise ConfigError(f"{skill}: cannot read the skill ({error})") from None
-    components = (data or {}).get("components") or {}
-    kinds = {
+    if not isinstance(data, dict):
+        raise ConfigError(f"{skill}: not a skill (a YAML mapping)")
+    return data
+
+
+def offered_interactions(skill_data: dict[str, Any]) -> set[str]:
+    """The interaction kinds (push, pull) the skill's action sampler proposes."""
+    components = skill_data.get("components") or {}
+    return {
         kind
         for component in components.values()
         if isinstance(component, dict)
         for kind in ((component.get("with") or {}).get("interactions") or [])
     }
+
+
+def skill_interaction(skill: Path) -> str:
+    """The one interaction kind (push or pull) the skill's action sampler proposes."""
+    kinds = offered_interactions(read_skill(skill))
     if len(kinds) != 1:
         raise ConfigError(
             f"{skill}: eval needs a skill whose action sampler has exactly one of "
             f"'interactions: [push]' or '[pull]', found {sorted(kinds) or 'none'}"
         )
     return kinds.pop()
+
+
+def planner_override(selector: str, skill_data: dict[str, Any]) -> str:
+    """The ``components.planner=...`` override that selects actions with ``actions.<selector>``.
+
+    A skill whose planner already is that selector keeps its settings; ``actions.info_gain``
+    otherwise looks :data:`INFO_GAIN_HORIZON_S` ahead at the skill's ``rate_hz``.
+    """
+    plugin = f"actions.{selector}"
+    planner = (skill_data.get("components") or {}).get("planner")
+    component: dict[str, Any] = {"plugin": plugin}
+    if isinstance(planner, dict) and planner.get("plugin") == plugin and planner.get("with"):
+        component["with"] = dict(planner["with"])
+    elif selector == "info_gain":
+        rate_hz = float(skill_data.get("rate_hz", 15.0))
+        component["with"] = {"horizon_s": INFO_GAIN_HORIZON_S, "rate_hz": rate_hz}
+    return "components.planner=" + json.dumps(component)
 
 
 def select_objects(selection: Sequence[str], out: Path, max_objects: int | None) -> list[Path]:
@@ -408,26 +489,28 @@ def model_override(model: str, spec: ObjectSpec, folder: Path, kind: str) -> tup
 
 
 def plan_runs(options: EvalOptions, objects: Sequence[Path], kind: str) -> list[RunPlan]:
-    """Every (object, model) run with its ``--set`` overrides or its skip reason."""
+    """Every (object, variant) run with its ``--set`` overrides or its skip reason."""
     folder = options.checkpoints or options.skill.parent / "checkpoints"
+    skill_data = read_skill(options.skill)
     common = list(options.overrides)
     noise = folder / f"obs_noise_{kind}.pt"
     if noise.is_file():
         common.append(f"components.filter.with.noise_checkpoint={noise.resolve()}")
     if options.max_interactions:
         common.append(f"tree.sequence.1.repeat.max={options.max_interactions}")
-    variants = [*options.models, *([FIXED] if "gnn" in options.models else [])]
     plans = []
     for path in objects:
         spec = load_object(path)
-        for variant in variants:
+        for variant in chosen_variants(options):
             plan = RunPlan(path, spec, variant)
             model, why = model_override(plan.model, spec, folder, kind)
             if model is None:
                 plan.skipped = why
             else:
-                plan.overrides = [*common, f"components.world.with.object={path.resolve()}", model]
-                if variant == FIXED:
+                planner = planner_override(variant.selector, skill_data)
+                plan.overrides = [*common, f"components.world.with.object={path.resolve()}",
+                                  model, planner]  # fmt: skip
+                if not variant.estimate_parameters:
                     plan.overrides.append("components.filter.with.estimate_parameters=false")
             plans.append(plan)
     return plans
@@ -439,7 +522,7 @@ def plan_runs(options: EvalOptions, objects: Sequence[Path], kind: str) -> list[
 
 def run_dir_of(out: Path, plan: RunPlan) -> Path:
     """Where ``plan``'s run is recorded."""
-    return out / "runs" / plan.spec.name / plan.variant
+    return out / "runs" / plan.spec.name / plan.variant.key
 
 
 def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
@@ -456,7 +539,7 @@ def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
     if done and json.loads(stamp.read_text(encoding="utf-8")) == args:
         log.info("reusing %s", run_dir)
         return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0}
-    log.info("running %s on %s", plan.variant, plan.spec.name)
+    log.info("running %s on %s", plan.variant.label, plan.spec.name)
     level = logging.getLogger("vistac").level
     printed = io.StringIO()
     try:
@@ -492,10 +575,12 @@ def run_record(plan: RunPlan, options: EvalOptions, kind: str) -> dict[str, Any]
     """Execute and score one planned run; the record eval.json keeps of it."""
     record: dict[str, Any] = {
         "object": plan.spec.name, "object_file": str(plan.object_path), "type": plan.spec.type,
-        "kind": kind, "model": plan.model, "variant": plan.variant,
+        "kind": kind, "model": plan.model, "variant": plan.variant.label,
+        "variant_key": plan.variant.key, "selector": plan.variant.selector,
+        "estimate_parameters": plan.variant.estimate_parameters,
     }  # fmt: skip
     if plan.skipped:
-        log.info("skipping %s on %s: %s", plan.variant, plan.spec.name, plan.skipped)
+        log.info("skipping %s on %s: %s", plan.variant.label, plan.spec.name, plan.skipped)
         return record | {"status": "skipped", "reason": plan.skipped}
     record |= execute(plan, options)
     if record["status"] == "ok":
@@ -544,7 +629,7 @@ def tracking_table(records: Sequence[dict[str, Any]]) -> dict[str, dict[str, dic
     """{type: {variant: mean position error (m), angle error (rad), runs}}, plus ``all``."""
     table: dict[str, dict[str, dict[str, float]]] = {}
     for kind_type in [*OBJECT_TYPES, "all"]:
-        for variant in sorted({r["variant"] for r in records}):
+        for variant in dict.fromkeys(r["variant"] for r in records):
             runs = [
                 r["tracking"] for r in _scored(records, variant)
                 if kind_type in ("all", r["type"]) and r["tracking"]["steps"] > 0
@@ -588,7 +673,7 @@ def tables_markdown(
             lines += [""]
     lines += ["# Pose tracking (mean error of the pose change since each episode's start)", ""]
     lines += [
-        "| objects | model | position (mm) | angle (deg) | runs |",
+        "| objects | variant | position (mm) | angle (deg) | runs |",
         "|---|---|---:|---:|---:|",
     ]
     for kind_type, by_variant in tracking.items():
@@ -601,7 +686,7 @@ def tables_markdown(
 
 
 def plot_curves(curves: dict[str, list[float]], path: Path) -> None:
-    """Overall NRMSE vs interaction number, one line per model (Fig. 12-14)."""
+    """Overall NRMSE vs interaction number, one line per variant (Fig. 12-14)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -672,7 +757,8 @@ def plot_belief(run_dir: Path, record: dict[str, Any], path: Path) -> None:
 
 
 def evaluate(options: EvalOptions) -> dict[str, Any]:
-    """Run every planned (object, model) pair and write tables, plots and eval.json."""
+    """Run every planned (object, variant) pair and write tables, plots and eval.json."""
+    chosen_variants(options)  # a bad --variants/--models pair fails before anything runs
     kind = skill_interaction(options.skill)
     options.out.mkdir(parents=True, exist_ok=True)
     objects = select_objects(options.objects, options.out, options.max_objects)
@@ -682,14 +768,19 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
     records = [run_record(plan, options, kind) for plan in plans]
     ranges = parameter_ranges()
     variants = list(dict.fromkeys(plan.variant for plan in plans))
+    labels = [variant.label for variant in variants]
     report = {
         "skill": str(options.skill), "interaction": kind, "seed": options.seed,
         "objects": [str(p) for p in objects], "models": list(options.models),
+        "variants": {v.label: {"model": v.model, "selector": v.selector,
+                               "estimate_parameters": v.estimate_parameters} for v in variants},
         "ranges": ranges,
         "ranges_note": "m, f, f_j: the object set's sampling ranges; CoM: range of the radial "
         "CoM over the 120 generated configurations",
-        "tables": nrmse_tables(records, ranges, [v for v in variants if v != FIXED]),
-        "nrmse_vs_interactions": nrmse_by_interaction(records, ranges, variants),
+        "tables": nrmse_tables(
+            records, ranges, [v.label for v in variants if v.estimate_parameters]
+        ),
+        "nrmse_vs_interactions": nrmse_by_interaction(records, ranges, labels),
         "tracking": tracking_table(records),
         "runs": records,
     }  # fmt: skip
@@ -709,5 +800,5 @@ def _write_reports(report: dict[str, Any], out: Path) -> None:
     plot_curves(report["nrmse_vs_interactions"], out / "nrmse_vs_interactions.png")
     for record in report["runs"]:
         if record["status"] == "ok":
-            name = f"belief_{record['object']}_{record['variant']}.png"
+            name = f"belief_{record['object']}_{record['variant_key']}.png"
             plot_belief(Path(record["run_dir"]), record, out / name)

@@ -114,7 +114,10 @@ def load_preset(name: str) -> TrainConfig:
     import yaml
 
     try:
-        return TrainConfig.model_validate(yaml.safe_load(path.read_text(encoding="utf-8")))
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        if isinstance(data, dict):
+            data.pop("active", None)  # active-training settings: vistac.plugins.filters.active
+        return TrainConfig.model_validate(data)
     except ValueError as error:
         raise ConfigError(f"{path}: not a valid training preset:\n{error}") from None
 
@@ -181,27 +184,35 @@ def gaussian_nll(error: Tensor, var: Tensor) -> Tensor:
     return 0.5 * (error.square() / var + var.log() + math.log(2 * math.pi)).mean()
 
 
-def rollout_loss(model: Any, windows: list[Trajectory], rollout_steps: int) -> Tensor:
-    """Open-loop rollout loss over a batch of equal-length windows of one link count."""
+def rollout_errors(
+    model: Any, windows: list[Trajectory], rollout_steps: int
+) -> Iterator[tuple[Tensor, Tensor, Tensor]]:
+    """Per step of open-loop rollouts of ``rollout_steps`` from the true state, over a batch of
+    B equal-length windows of L links: (pose error [B, 1, 6L] and predicted process variance
+    [B, 1, 6L], both in units of ``_POSE_SCALE``; force error [B, 2] in ``_FORCE_SCALE_N``)."""
     layout = StateLayout(windows[0].n_links)
     truth = torch.stack([true_states(w, layout) for w in windows])  # [B, T, n]
     inputs = process_inputs(windows)
     force = torch.as_tensor(np.stack([w.force_n for w in windows]), dtype=DTYPE)
-    dt_s = windows[0].dt_s
-    losses = []
+    scale = _POSE_SCALE.repeat(layout.n_links)
     for start in range(0, truth.shape[1] - 1, rollout_steps):
         state = truth[:, start : start + 1]  # [B, 1, n]
         for step in range(start, min(start + rollout_steps, truth.shape[1] - 1)):
-            prediction = model.predict(state, inputs[step], dt_s)
+            prediction = model.predict(state, inputs[step], windows[0].dt_s)
             target = truth[:, step + 1, layout.pose_slice].unsqueeze(1)
-            scale = _POSE_SCALE.repeat(layout.n_links)
             error = (prediction.pose - target) / scale
-            var = prediction.process_var.unsqueeze(-2) / scale**2
-            force_error = (prediction.force_n[:, 0] - force[:, step + 1]) / _FORCE_SCALE_N
-            losses.append(gaussian_nll(error, var.expand_as(error)) + error.square().mean()
-                          + force_error.square().mean())  # fmt: skip
+            var = (prediction.process_var.unsqueeze(-2) / scale**2).expand_as(error)
+            yield error, var, (prediction.force_n[:, 0] - force[:, step + 1]) / _FORCE_SCALE_N
             params = state[..., layout.parameter_slice]
             state = torch.cat([prediction.pose, params], -1)
+
+
+def rollout_loss(model: Any, windows: list[Trajectory], rollout_steps: int) -> Tensor:
+    """Open-loop rollout loss over a batch of equal-length windows of one link count."""
+    losses = [
+        gaussian_nll(error, var) + error.square().mean() + force_error.square().mean()
+        for error, var, force_error in rollout_errors(model, windows, rollout_steps)
+    ]
     return torch.stack(losses).mean()
 
 
@@ -341,22 +352,39 @@ def _progress(label: str, done: int, total: int, row: dict[str, float]) -> None:
     sys.stderr.flush()
 
 
-def _build_model(name: ModelName, n_links: int, config: TrainConfig, out_dir: Path) -> Any:
+def build_model(
+    name: ModelName,
+    n_links: int,
+    config: TrainConfig,
+    out_dir: Path,
+    checkpoint: Path | None = None,
+) -> Any:
+    """A process model of the preset's architecture: fresh (seeded) or from ``checkpoint``."""
     from vistac.testing import build_components
 
     options: dict[str, Any] = {"hidden": config.hidden}
     if name == "ff":
         options["n_links"] = n_links
+    if checkpoint is not None:
+        options["checkpoint"] = str(checkpoint.resolve())
     spec = {"model": {"plugin": f"filters.{name}", "with": options}}
     return build_components(spec, out_dir / ".build", seed=config.seed).component("model")
 
 
 def train_interaction(
-    kind: Interaction, data: dict[str, list[Trajectory]], config: TrainConfig, out_dir: Path
+    kind: Interaction,
+    data: dict[str, list[Trajectory]],
+    config: TrainConfig,
+    out_dir: Path,
+    warm_start: bool = False,
 ) -> dict[str, Any]:
-    """Train every model of the preset plus ObsNoiseNet on one interaction type."""
+    """Train every model of the preset plus ObsNoiseNet on one interaction type.
+
+    ``warm_start``: continue from the checkpoints already in ``out_dir`` (where there are
+    some) instead of fresh weights, as each round of active training does.
+    """
     windows = {
-        split: stack_equal_length([t for t in trajs if t.kind == kind], _window_steps(trajs))
+        split: stack_equal_length([t for t in trajs if t.kind == kind], window_steps(trajs))
         for split, trajs in data.items()
     }
     if not windows["train"] or not windows["val"]:
@@ -364,14 +392,19 @@ def train_interaction(
     rng = np.random.default_rng(config.seed)
     report: dict[str, Any] = {"windows": {k: len(v) for k, v in windows.items()}}
     noise_net = ObsNoiseNet().to(DTYPE)
+    noise_path = out_dir / f"obs_noise_{kind}.pt"
+    if warm_start and noise_path.is_file():
+        noise_net.load_state_dict(torch.load(noise_path, weights_only=True))
     report["obs_noise"] = _train_noise(noise_net, windows, config, rng)
     for name in config.models:
-        report[name] = _train_model(name, kind, noise_net, windows, config, out_dir, rng)
-    _save_noise(noise_net, out_dir / f"obs_noise_{kind}.pt")
+        report[name] = _train_model(
+            name, kind, noise_net, windows, config, out_dir, rng, warm_start
+        )
+    _save_noise(noise_net, noise_path)
     return report
 
 
-def _window_steps(trajectories: list[Trajectory]) -> int:
+def window_steps(trajectories: list[Trajectory]) -> int:
     """A third of the typical trajectory (paper 1, IV-B2), at least 3 steps."""
     return max(3, int(np.median([t.steps for t in trajectories])) // 3) if trajectories else 3
 
@@ -401,16 +434,19 @@ def _train_model(
     config: TrainConfig,
     out_dir: Path,
     rng: np.random.Generator,
+    warm_start: bool = False,
 ) -> dict[str, Any]:
     link_counts = sorted({w.n_links for w in windows["train"]})
     if name == "ff" and len(link_counts) > 1:
         # The feed-forward baseline has a fixed link count: one model per count.
         return {
             f"{n}_links": _train_model(name, kind, noise_net, _only(windows, n), config,
-                                       out_dir / f"ff{n}", rng)
+                                       out_dir / f"ff{n}", rng, warm_start)
             for n in link_counts
         }  # fmt: skip
-    model = _build_model(name, link_counts[0], config, out_dir)
+    path = out_dir / f"{name}_{kind}.pt"
+    start = path if warm_start and path.is_file() else None
+    model = build_model(name, link_counts[0], config, out_dir, start)
     start_s = time.perf_counter()
 
     def train() -> Iterator[Tensor]:
@@ -425,7 +461,6 @@ def _train_model(
     params = list(model.net.parameters())
     history = fit(params, train, val, [model.net], config.epochs, config, f"{name} {kind}")
     filter_history = _train_filter(model, noise_net, windows, config, rng, f"{name} {kind} DF")
-    path = out_dir / f"{name}_{kind}.pt"
     model.save_checkpoint(path)
     return {
         "checkpoint": str(path), "history": history, "filter_history": filter_history,

@@ -12,8 +12,6 @@ is in no library.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import logging
 import statistics
@@ -23,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from vistac.campaign import run_once
 from vistac.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -83,8 +82,6 @@ def select_touch_objects(selection: Sequence[str]) -> list[tuple[str, bool]]:
 def run_trial(options: TouchEvalOptions, obj: str, explorer: str, trial: int) -> dict[str, Any]:
     """Run the skill once (reusing a finished run with the same arguments): the record of
     ``touch_errors`` and the run's wall time."""
-    from vistac.cli import main
-
     run_dir = options.out / "runs" / explorer / obj / f"trial_{trial:02d}"
     args = ["-q", "run", str(options.skill), "--out", str(run_dir), "--overwrite",
             "--seed", str(options.seed + trial),
@@ -92,27 +89,13 @@ def run_trial(options: TouchEvalOptions, obj: str, explorer: str, trial: int) ->
             "--set", f"components.explorer.plugin=touch.{explorer}"]  # fmt: skip
     for override in options.overrides:
         args += ["--set", override]
-    stamp = run_dir / "eval_args.json"
-    summary_path = run_dir / "summary.json"
-    reuse = stamp.is_file() and summary_path.is_file()
-    if not (reuse and json.loads(stamp.read_text(encoding="utf-8")) == args):
-        log.info("touch eval: %s on %s, trial %d", explorer, obj, trial)
-        level = logging.getLogger("vistac").level
-        try:
-            with contextlib.redirect_stdout(io.StringIO()):
-                code = main(args)
-        finally:  # the nested CLI call sets the package's log level to -q
-            logging.getLogger("vistac").setLevel(level)
-        if code == ConfigError.exit_code:
-            raise ConfigError(f"touch eval: the skill with {' '.join(args[2:])} is not "
-                              "valid (message above); fix the skill or the --set options")
-        if code != 0 or not summary_path.is_file():
-            return {"status": "failed", "reason": f"exit code {code}; see {run_dir}"}
-        stamp.write_text(json.dumps(args), encoding="utf-8")
-    summary = json.loads(summary_path.read_text(encoding="utf-8"))
+    log.info("touch eval: %s on %s, trial %d", explorer, obj, trial)
+    code, summary = run_once(args, run_dir, "touch eval")
+    if code != 0 or summary is None:
+        return {"status": "failed", "reason": f"exit code {code}; see {run_dir}"}
     errors = summary.get("touch_errors")
     if not isinstance(errors, dict):
-        return {"status": "failed", "reason": f"no touch_errors in {summary_path}"}
+        return {"status": "failed", "reason": f"no touch_errors in {run_dir}/summary.json"}
     return {"status": "ok", "run_dir": str(run_dir),
             "wall_s": summary.get("wall_time_s"), **errors}  # fmt: skip
 

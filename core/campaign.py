@@ -1,0 +1,44 @@
+"""Evaluation campaigns: many ``vistac run`` calls of one skill, each into its own folder,
+reused when the same call already finished there (``vistac eval`` of touch and goal skills)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+from vistac.errors import ConfigError
+
+_STAMP = "eval_args.json"
+"""The arguments and exit code of the finished run in a run folder."""
+
+
+def run_once(args: list[str], run_dir: Path, who: str) -> tuple[int, dict[str, Any] | None]:
+    """``vistac ARGS`` (a ``run`` writing to ``run_dir``) unless a finished run with the same
+    arguments is there: (its exit code, its summary or None when it wrote none).
+
+    ConfigError when the skill with these arguments is not valid: every other run of the
+    campaign would fail the same way."""
+    from vistac.cli import main
+
+    stamp, summary_path = run_dir / _STAMP, run_dir / "summary.json"
+    if stamp.is_file() and summary_path.is_file():
+        finished = json.loads(stamp.read_text(encoding="utf-8"))
+        if isinstance(finished, dict) and finished.get("args") == args:
+            return int(finished["exit_code"]), json.loads(summary_path.read_text("utf-8"))
+    level = logging.getLogger("vistac").level
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            code = main(args)
+    finally:  # the nested CLI call sets the package's log level to -q
+        logging.getLogger("vistac").setLevel(level)
+    if code == ConfigError.exit_code:
+        raise ConfigError(f"{who}: the skill with {' '.join(args[2:])} is not valid (message "
+                          "above); fix the skill or the --set options")  # fmt: skip
+    if not summary_path.is_file():
+        return code, None
+    stamp.write_text(json.dumps({"args": args, "exit_code": code}), encoding="utf-8")
+    return code, json.loads(summary_path.read_text(encoding="utf-8"))

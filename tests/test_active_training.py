@@ -1,0 +1,240 @@
+"""Active iterative training (paper 1, IV-B2): replay buffer, stop rule, validation error, and
+one tiny end-to-end run of `vistac train --selection info_gain`."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from vistac.cli import main
+from vistac.errors import ConfigError, DataError
+from vistac.objects import link_frames, load_object
+from vistac.plugins.filters import active
+from vistac.plugins.filters.active import (
+    ACTIVE_PRESETS,
+    ReplayBuffer,
+    active_settings,
+    repeat_key,
+    stop_reason,
+    trajectories_to_threshold,
+    validation_error,
+)
+from vistac.plugins.filters.data import Trajectory, acted_link
+from vistac.plugins.filters.evaluate import read_skill
+from vistac.plugins.filters.state import DTYPE, Prediction
+from vistac.plugins.filters.train import load_preset
+
+ROOT = Path(__file__).resolve().parents[1]
+SKILLS = ROOT / "skills"
+
+
+@pytest.fixture(autouse=True)
+def single_thread() -> Iterator[None]:
+    """Tiny matrices: one thread avoids OpenMP spin-waits on a shared 2-core machine."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def _trajectory(name: str, steps: int = 4) -> Trajectory:
+    """A still rect1 (pose (0, 0.45, 0)) and a constant finger force of (1, 0) N."""
+    zeros = np.zeros((steps, 1, 3))
+    poses = zeros + np.array([0.0, 0.45, 0.0])
+    return Trajectory(
+        source=name, spec=load_object(SKILLS / "objects/rect1.yaml"), kind="push", pd_rad=0.0,
+        link=0, dt_s=1 / 15, poses=poses, twists=zeros, tcp=np.zeros((steps, 6)),
+        force_n=np.tile([1.0, 0.0], (steps, 1)), depth_m=None, camera_pose=None,
+        intrinsics=None, parameters={"m_0": 0.8, "f_0": 0.3, "com_x_0": 0.0, "com_y_0": 0.0},
+    )  # fmt: skip
+
+
+def test_replay_buffer_keeps_the_newest_up_to_its_capacity() -> None:
+    a, b, c, d = (_trajectory(name) for name in "abcd")
+    buffer = ReplayBuffer(capacity=3)
+    buffer.add([a, b])
+    assert buffer.trajectories == [a, b] and buffer.added == 2
+    buffer.add([c, d])
+    assert buffer.trajectories == [b, c, d]  # the oldest (the seed) goes first
+    assert (len(buffer), buffer.added) == (3, 4)
+    unbounded = ReplayBuffer()
+    unbounded.add([a, b])
+    unbounded.add(iter([c]))
+    assert unbounded.trajectories == [a, b, c] and unbounded.added == 3
+    with pytest.raises(ValueError, match="capacity must be >= 1"):
+        ReplayBuffer(capacity=0)
+
+
+@pytest.mark.parametrize(
+    ("val_error", "rounds_done", "expected"),
+    [(0.5, 1, "threshold"), (0.49, 5, "threshold"), (0.51, 4, None), (0.51, 5, "max_rounds")],
+)
+def test_stop_rule(val_error: float, rounds_done: int, expected: str | None) -> None:
+    assert stop_reason(val_error, threshold=0.5, rounds_done=rounds_done, max_rounds=5) == expected
+
+
+def test_trajectories_to_threshold() -> None:
+    rounds = [{"trajectories": 2, "val_error": 0.9}, {"trajectories": 4, "val_error": 0.45},
+              {"trajectories": 6, "val_error": 0.3}]  # fmt: skip
+    assert trajectories_to_threshold(rounds, 0.5) == 4
+    assert trajectories_to_threshold(rounds, 0.3) == 6
+    assert trajectories_to_threshold(rounds, 0.1) is None
+
+
+def test_acted_link_is_the_true_link_nearest_the_tcp_at_contact() -> None:
+    spec = load_object(SKILLS / "objects/artic_rect_rect.yaml")
+    frames = link_frames(spec)  # link 0 at x = -0.047 m, link 1 at x = +0.047 m, y = 0.45 m
+    assert frames[0, 0] < 0 < frames[1, 0]
+    tcp = np.zeros((3, 6))
+    tcp[:, :2] = [[-0.2, 0.45], [0.12, 0.45], [0.11, 0.45]]  # far left, then right of link 1
+    pushed = dataclasses.replace(
+        _trajectory("artic", steps=3), spec=spec, poses=np.stack([frames] * 3),
+        twists=np.zeros((3, 2, 3)), tcp=tcp, link=0,
+        force_n=np.array([[0.0, 0.0], [-1.0, 0.0], [-1.2, 0.0]]),
+    )  # fmt: skip
+    assert acted_link(pushed) == 1
+    untouched = dataclasses.replace(pushed, force_n=np.array([[0.1, 0.0], [0.0, 0.0], [0.0, 0.0]]))
+    assert acted_link(untouched) == 0  # no contact: the step of the largest force (far left)
+    assert acted_link(_trajectory("one link")) == 0
+
+
+def test_a_failed_round_run_leaves_its_object_out(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    def collect(skill: Path, objects: list[Path], out: Path, config: object) -> list[Path]:
+        if objects[0].stem == "tri2":
+            raise DataError("collection failed on tri2 before any episode")
+        return [out / objects[0].stem]
+
+    monkeypatch.setattr(active, "collect", collect)
+    monkeypatch.setattr(active, "load_trajectories", lambda runs: [_trajectory(runs[0].name)])
+    collector = active.Collector(SKILLS / "explore_active.yaml", load_preset("tiny"),
+                                 ACTIVE_PRESETS["tiny"])  # fmt: skip
+    objects = [SKILLS / "objects" / f"{name}.yaml" for name in ("rect1", "tri2", "rect3")]
+    kept = collector.run(objects, tmp_path, "random", 1, seed=0, strict=False)
+    assert [t.source for t in kept] == ["rect1", "rect3"]
+    with pytest.raises(DataError, match="tri2"):
+        collector.run(objects, tmp_path, "random", 1, seed=0)
+
+
+class _OffsetModel:
+    """Predicts the current pose moved 1 cm along x and a force 0.5 N above the measured."""
+
+    def predict(self, state: torch.Tensor, inputs: object, dt_s: float) -> Prediction:
+        pose = state[..., :6].clone()
+        pose[..., 0] += 0.01
+        force = torch.tensor([[1.5, 0.0]], dtype=DTYPE).expand(state.shape[0], 1, 2)
+        return Prediction(pose, force, torch.ones(state.shape[0], 6, dtype=DTYPE))
+
+
+def test_validation_error_by_hand() -> None:
+    windows = [_trajectory("a"), _trajectory("b")]
+    errors = validation_error(_OffsetModel(), windows, rollout_steps=1, batch_size=8)
+    # scaled pose error (1, 0, 0, 0, 0, 0) -> MSE 1/6; force error (0.5, 0) -> MSE 0.125
+    assert errors["val_error"] == pytest.approx(1 / 6 + 0.125)
+    assert errors["position_rmse_mm"] == pytest.approx(10 * math.sqrt(0.5))
+    assert errors["angle_rmse_deg"] == pytest.approx(0.0)
+    assert errors["force_rmse_n"] == pytest.approx(math.sqrt(0.125))
+    # open loop over 3 steps: the offset adds up (1, 2, 3 cm)
+    errors = validation_error(_OffsetModel(), windows, rollout_steps=3, batch_size=8)
+    assert errors["val_error"] == pytest.approx((1 + 4 + 9) / 3 / 6 + 0.125)
+
+
+def test_active_settings_from_presets_files_and_options(tmp_path: Path) -> None:
+    tiny = active_settings("tiny", selection="uniform", threshold=None, max_rounds=3)
+    assert tiny.selection == "uniform" and tiny.max_rounds == 3
+    assert tiny.threshold == ACTIVE_PRESETS["tiny"].threshold
+    preset = tmp_path / "preset.yaml"
+    preset.write_text(yaml.safe_dump({"models": ["gnn"], "active": {"per_round": 5}}))
+    assert load_preset(str(preset)).models == ("gnn",)  # the active block is not TrainConfig's
+    assert active_settings(str(preset), selection="random").per_round == 5
+    with pytest.raises(ConfigError, match="max_rounds"):
+        active_settings("tiny", max_rounds=0)
+
+
+def test_the_loop_of_interactions_in_the_collection_skills() -> None:
+    for name, key in (("explore_active", "tree.sequence.1.repeat"),
+                      ("collect_pushes", "tree.sequence.0.repeat")):  # fmt: skip
+        path = SKILLS / f"{name}.yaml"
+        assert repeat_key(read_skill(path), path) == key
+    with pytest.raises(ConfigError, match="a repeat of interactions"):
+        repeat_key({"tree": {"sequence": ["look", "stop"]}}, Path("look.yaml"))
+
+
+def _train(out: Path, preset: Path, *args: str) -> int:
+    return main(["-q", "train", str(SKILLS / "explore_active.yaml"), "--out", str(out),
+                 "--preset", str(preset), *args])  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("skill", "args", "message"),
+    [
+        ("collect_pushes", ["--selection", "info_gain"], "use a collection skill with a filter"),
+        ("explore_active", ["--rounds", "2"], "--rounds: only with --selection"),
+        ("explore_active", ["--selection", "random", "--rounds", "0"], "max_rounds"),
+        ("explore_active", ["--selection", "random", "--data", "x"], "--data: active training"),
+    ],
+    ids=["info-gain-needs-filter", "rounds-without-selection", "zero-rounds", "data"],
+)
+def test_bad_active_options_are_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], skill: str, args: list[str], message: str
+) -> None:
+    out = tmp_path / "out"
+    code = main(["-q", "train", str(SKILLS / f"{skill}.yaml"), "--out", str(out), *args])
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+FAST = [
+    "components.views.with.max_views=1", "components.camera.with.width=160",
+    "components.camera.with.height=120", "components.filter.with.sigma_points=16",
+    "components.affordances.with.samples=16", "components.affordances.with.duration_s=2",
+]  # fmt: skip
+
+
+def test_active_training_end_to_end(tmp_path: Path) -> None:
+    """One object, two rounds (the random seed interaction, then one chosen by information
+    gain with the model of round 0); then a reachable threshold stops after the seed round."""
+    preset = tmp_path / "preset.yaml"
+    preset.write_text(yaml.safe_dump({
+        "shipped_train": ["rect1"], "shipped_val": ["rect3"], "models": ["gnn"],
+        "interactions": ["push"], "hidden": 16, "noise_epochs": 1, "filter_epochs": 1,
+        "filter_windows": 2, "filter_sigma_points": 8, "batch_size": 8,
+        "active": {"seed_interactions": 1, "val_interactions": 2, "per_round": 1,
+                   "max_rounds": 2, "threshold": 0.0, "epochs_per_round": 3,
+                   "collect_overrides": FAST},
+    }))  # fmt: skip
+    out = tmp_path / "out"
+    assert _train(out, preset, "--selection", "info_gain") == 0
+    report = json.loads((out / "train.json").read_text(encoding="utf-8"))
+    assert report["mode"] == "active" and report["selection"] == "info_gain"
+    result = report["push"]["gnn"]
+    assert [(r["round"], r["trajectories"], r["buffer"]) for r in result["rounds"]] == [
+        (0, 1, 1), (1, 2, 2)
+    ]  # fmt: skip
+    assert all(math.isfinite(r["val_error"]) and r["val_error"] > 0 for r in result["rounds"])
+    assert result["stopped"] == "max_rounds" and result["trajectories_to_threshold"] is None
+    assert report["data"]["val"]["trajectories"] == 2
+    work = out / "active" / "gnn_push"
+    config = json.loads((work / "data/round_01/rect1_0/run.json").read_text())["config"]
+    assert config["components"]["planner"]["plugin"] == "actions.info_gain"
+    assert Path(config["components"]["model"]["with"]["checkpoint"]) == work / "gnn_push.pt"
+    for name in ("gnn_push.pt", "gnn_push.pt.json", "obs_noise_push.pt", "active_training.png"):
+        assert (out / name).stat().st_size > 0, name
+    assert (out / "gnn_push.pt").read_bytes() == (work / "gnn_push.pt").read_bytes()
+
+    seed_run = out / "active/data/seed/rect1_0/summary.json"
+    stamp = seed_run.stat().st_mtime_ns
+    assert _train(out, preset, "--selection", "info_gain", "--threshold", "1e6") == 0
+    result = json.loads((out / "train.json").read_text(encoding="utf-8"))["push"]["gnn"]
+    assert result["stopped"] == "threshold" and result["trajectories_to_threshold"] == 1
+    assert len(result["rounds"]) == 1
+    assert seed_run.stat().st_mtime_ns == stamp  # the seed collection was reused
