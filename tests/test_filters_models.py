@@ -150,6 +150,16 @@ def test_gnn_runs_on_one_two_and_three_links(tmp_path: Path) -> None:
             check_prediction(model.predict(states, inputs, DT_S), (2,), n_links)
 
 
+def test_gnn_pose_only_prediction_equals_the_full_one_without_the_force(tmp_path: Path) -> None:
+    model = build(GNNProcessModel, tmp_path, hidden=32)
+    states, inputs = scenario((2,), 2, link=1)
+    full, pose_only = model.predict(states, inputs, DT_S), model.predict_pose(states, inputs, DT_S)
+    check_prediction(pose_only, (2,), 2)
+    assert torch.equal(pose_only.pose, full.pose)
+    assert torch.equal(pose_only.process_var, full.process_var)
+    assert not pose_only.force_n.any() and full.force_n.abs().sum() > 0
+
+
 def reference_graph_step(
     net: GraphProcessNet, states: Tensor, inputs: ProcessInput
 ) -> Prediction:

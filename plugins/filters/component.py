@@ -142,6 +142,15 @@ def nearest_link(points_m: FloatArray, poses: FloatArray, sizes: FloatArray) -> 
     return np.asarray(score.argmin(axis=1))
 
 
+class _LookAheadModel:
+    """The process model as look-aheads use it: its pose-only prediction where it has one
+    (``predict_pose``: the finger force, which no look-ahead reads, is not computed)."""
+
+    def __init__(self, model: Any) -> None:
+        self.n_links = model.n_links
+        self.predict = getattr(model, "predict_pose", None) or model.predict
+
+
 @dataclass(frozen=True)
 class _ActionMotion:
     """The gripper moving along each of B actions: start [B, 2] (m), yaw [B] (rad),
@@ -302,7 +311,7 @@ class DualFilterComponent(Component):
         motion = self._action_motion(actions, poses)
         # Prediction only: the observation model is never called.
         filter_ = DualFilter(
-            self.layout, self.model, cast(ObservationModel, None),
+            self.layout, _LookAheadModel(self.model), cast(ObservationModel, None),
             sigma_points or self.config.sigma_points,
         )  # fmt: skip
         generator = torch.Generator().manual_seed(self.ctx.seed)
@@ -350,9 +359,10 @@ class DualFilterComponent(Component):
         steps = torch.as_tensor([round(a.duration_s * rate_hz) for a in actions])
         dt_s = 1.0 / rate_hz
         params = states[..., layout.parameter_slice]
+        look_ahead = _LookAheadModel(self.model)
         with torch.no_grad():
             for step in range(int(steps.max()) if len(actions) else 0):
-                prediction = self.model.predict(states, motion.inputs(step * dt_s), dt_s)
+                prediction = look_ahead.predict(states, motion.inputs(step * dt_s), dt_s)
                 moved = torch.cat([prediction.pose, params], -1)
                 states = torch.where((step < steps)[:, None, None], moved, states)
         return states[:, 0] * at_rest

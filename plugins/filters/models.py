@@ -173,6 +173,11 @@ class GNNProcessModel(_LearnedProcessModel):
     def architecture(self) -> dict[str, int]:
         return {"hidden": self.config.hidden}
 
+    def predict_pose(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
+        """:meth:`predict` without the finger force (zeros), for look-aheads: ~10% faster."""
+        prediction: Prediction = self.net(states, inputs, dt_s, with_force=False)
+        return prediction
+
 
 class FFProcessModel(_LearnedProcessModel):
     """``filters.ff``: the feed-forward baseline for a fixed number of links."""

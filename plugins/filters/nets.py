@@ -409,9 +409,11 @@ class GraphProcessNet(nn.Module):
         """The residual update of node [n, D] by message [n, H] -> [n, D]."""
         return node + self.f_n.columns(node, message).t()
 
-    def forward(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
-        """states [..., C, n] -> Prediction (pose [..., C, 6 L], force_n [..., C, 2],
-        process_var [..., 6 L])."""
+    def forward(
+        self, states: Tensor, inputs: ProcessInput, dt_s: float, with_force: bool = True
+    ) -> Prediction:
+        """states [..., C, n] -> Prediction (pose [..., C, 6 L], force_n [..., C, 2] (zero
+        without ``with_force``), process_var [..., 6 L])."""
         layout = layout_of(states)
         n_links, (*batch, n_points, _) = layout.n_links, states.shape
         acted = inputs.link.to(torch.int64).expand(batch).reshape(-1)
@@ -428,9 +430,11 @@ class GraphProcessNet(nn.Module):
         nodes = links.clone()  # updated in place, phase by phase
         self._propagate_cause(nodes, robot, robot_edge, support_edges, joint_edges, chain)
         self._propagate_effect(nodes, joint_edges, chain)
-        to_robot = self._message(nodes.index_select(0, chain.acted_rows), robot, robot_edge)
-        force = self.tac_net.columns(to_robot).t().reshape(*batch, n_points, 2)
-        force = force_to_world(force, inputs)
+        force = states.new_zeros(*batch, n_points, 2)
+        if with_force:
+            to_robot = self._message(nodes.index_select(0, chain.acted_rows), robot, robot_edge)
+            force = self.tac_net.columns(to_robot).t().reshape(*batch, n_points, 2)
+            force = force_to_world(force, inputs)
         delta = nodes[:, :MOTION_DIM] - links[:, :MOTION_DIM]
         delta = delta.reshape(*batch, n_points, n_links, MOTION_DIM)
         return Prediction(
