@@ -305,14 +305,7 @@ def _eval_touch(args: argparse.Namespace) -> int:
         explorers=parse_explorers(args.explorers),
         seed=args.seed if args.seed is not None else 0, overrides=tuple(args.set),
     )  # fmt: skip
-    report = evaluate_touch(options)
-    print((args.out / "tables.md").read_text(encoding="utf-8"))
-    failed = [r for r in report["records"] if r["status"] != "ok"]
-    for record in failed:
-        print(f"failed: {record['explorer']} on {record['object']} trial {record['trial']}: "
-              f"{record['reason']}")
-    print(f"evaluated {len(report['records']) - len(failed)} touch runs; eval.json and "
-          f"tables.md in {args.out}")
+    _print_campaign(evaluate_touch(options), args.out, "explorer", "touch")
     return 0
 
 
@@ -324,15 +317,20 @@ def _eval_goal(args: argparse.Namespace) -> int:
         skill=args.skill, out=args.out, objects=objects, trials=args.trials, seed=args.seed,
         overrides=tuple(args.set),
     )  # fmt: skip
-    report = evaluate_goal(options)
-    print((args.out / "tables.md").read_text(encoding="utf-8"))
+    _print_campaign(evaluate_goal(options), args.out, "mode", "goal-push")
+    return 0
+
+
+def _print_campaign(report: dict[str, Any], out: Path, variant: str, what: str) -> None:
+    """The tables of a campaign, its failed runs (``variant`` names what varies besides the
+    object and trial) and where the files are."""
+    print((out / "tables.md").read_text(encoding="utf-8"))
     failed = [r for r in report["records"] if r["status"] != "ok"]
     for record in failed:
-        print(f"failed: {record['mode']} on {record['object']} trial {record['trial']}: "
+        print(f"failed: {record[variant]} on {record['object']} trial {record['trial']}: "
               f"{record['reason']}")  # fmt: skip
-    print(f"evaluated {len(report['records']) - len(failed)} goal-push runs; eval.json and "
-          f"tables.md in {args.out}")  # fmt: skip
-    return 0
+    print(f"evaluated {len(report['records']) - len(failed)} {what} runs; eval.json and "
+          f"tables.md in {out}")  # fmt: skip
 
 
 def _add_skill_options(parser: argparse.ArgumentParser) -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -18,6 +18,18 @@ from vistac.pluginmanager import Plugins, load_plugins
 
 ROOT = Path(__file__).resolve().parents[1]
 SKILLS = ROOT / "skills"
+
+
+@pytest.fixture
+def single_thread() -> Iterator[None]:
+    """Torch on one thread: the networks' matrices are tiny, and a second thread only adds
+    OpenMP spin-waits on a shared 2-core machine."""
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
 
 
 @pytest.fixture(scope="session")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -41,13 +40,7 @@ PRIOR_MEAN = np.array([0, 0, 0, 0, 0, 0, 0.8, 0.6, 0.0, 0.0])
 PRIOR_VAR = np.array([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3, 0.1**2, 0.1**2, 0.02**2, 0.02**2])
 
 
-@pytest.fixture(autouse=True)
-def single_thread() -> Iterator[None]:
-    """Tiny matrices: one thread avoids OpenMP spin-waits on a shared 2-core machine."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def as_tensor(values: NDArray[np.float64] | list[float]) -> Tensor:

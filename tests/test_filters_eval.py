@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-import torch
 from vistac.cli import main
 from vistac.objects import generate_configurations, object_from_dict
 from vistac.plugins.filters.evaluate import (
@@ -36,13 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RANGES = {"m": 1.4, "f": 0.4, "CoM": 0.05, "f_j": 0.5}
 
 
-@pytest.fixture(autouse=True)
-def single_thread() -> Iterator[None]:
-    """Tiny matrices: one thread avoids OpenMP spin-waits on a shared 2-core machine."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _belief(values: dict[str, float]) -> dict[str, dict[str, float]]:
