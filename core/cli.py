@@ -389,7 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser("train", help="collect interactions in simulation and train models")
     train.add_argument("skill", type=Path, help="the collection skill, e.g. collect_pushes.yaml")
     train.add_argument("--out", type=Path, required=True, help="checkpoint folder")
-    train.add_argument("--preset", default="tiny", help="tiny, paper or a preset YAML file")
+    train.add_argument("--preset", default="tiny", help="tiny, ship, paper or a preset YAML file")
     train.add_argument(
         "--data", type=Path, action="append", help="train on these recorded run folders instead"
     )

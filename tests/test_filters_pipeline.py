@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from vistac.objects import load_object
 from vistac.plugins.filters.component import DualFilterComponent, nearest_link, relative_poses
 from vistac.plugins.filters.data import link_geometry, unwrapped_twist
 from vistac.plugins.filters.state import StateLayout
+from vistac.plugins.filters.train import TrainConfig, fit
 from vistac.protocols import Filter, Scene
 from vistac.testing import build_components, check_component_class
 from vistac.types import PointCloud, ShapeEstimate, Superquadric
@@ -59,6 +61,30 @@ def _filter(tmp_path: Path, model: dict[str, object]) -> DualFilterComponent:
     specs = {"model": model, "filter": {"plugin": "filters.dual"}}
     component: DualFilterComponent = build_components(specs, tmp_path).component("filter")
     return component
+
+
+def _fit_quadratic(train_target: float, val_target: float, epochs: int = 5) -> tuple[float, int]:
+    """fit() on one weight w (start 0), train loss (w - train_target)^2, validation loss
+    (w - val_target)^2: (the weight it keeps, epochs run)."""
+    weight = torch.nn.Linear(1, 1, bias=False)
+    torch.nn.init.zeros_(weight.weight)
+
+    def train() -> Any:
+        yield (weight.weight.sum() - train_target).square()
+
+    def val() -> float:
+        return float((weight.weight.sum() - val_target).square())
+
+    config = TrainConfig(learning_rate=0.1, patience=2)
+    history = fit(list(weight.parameters()), train, val, [weight], epochs, config, "test")
+    return float(weight.weight.sum()), len(history)
+
+
+def test_fit_keeps_the_best_epoch_and_never_a_worse_model_than_the_start() -> None:
+    kept, _ = _fit_quadratic(train_target=1.0, val_target=1.0)
+    assert 0.4 < kept < 0.6  # Adam: about 0.1 per step; the last epoch is the best
+    kept, epochs = _fit_quadratic(train_target=1.0, val_target=-1.0)
+    assert kept == 0.0 and epochs == 2  # every epoch moved away: the start is kept
 
 
 def test_filters_dual_is_a_filter_component(tmp_path: Path) -> None:

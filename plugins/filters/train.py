@@ -87,6 +87,9 @@ class TrainConfig(BaseModel):
     )
     batch_size: int = Field(default=16, gt=0)
     learning_rate: float = Field(default=2e-3, gt=0)
+    filter_learning_rate: float = Field(
+        default=2e-4, gt=0, description="Adam step of the end-to-end epochs (fine-tuning)"
+    )
     patience: int = Field(
         default=5, gt=0, description="epochs without validation gain before stopping"
     )
@@ -99,6 +102,11 @@ PRESETS: dict[str, TrainConfig] = {
         collect_overrides=("tree.sequence.0.repeat.max=6",), hidden=32, epochs=8,
         noise_epochs=2, filter_epochs=1,
         filter_sigma_points=16, filter_windows=4, batch_size=8,
+    ),
+    "ship": TrainConfig(
+        models=("gnn",), collect_overrides=("tree.sequence.0.repeat.max=8",), hidden=32,
+        epochs=40, noise_epochs=3, filter_epochs=1, filter_sigma_points=16,
+        filter_windows=8, batch_size=8, patience=8,
     ),
     "paper": TrainConfig(objects="generated", runs_per_object=1, epochs=60, patience=8),
 }  # fmt: skip
@@ -313,10 +321,20 @@ def fit(
     epochs: int,
     config: TrainConfig,
     label: str,
+    learning_rate: float | None = None,
 ) -> list[dict[str, float]]:
-    """Adam with validation-based early stopping; restores the best weights."""
-    optimiser = torch.optim.Adam(parameters, lr=config.learning_rate)
-    best, best_state, stale, history = math.inf, None, 0, []
+    """Adam with validation-based early stopping; restores the best weights, which may be the
+    starting ones: an epoch that makes the validation loss worse (the end-to-end epochs can)
+    never replaces a better model. ``learning_rate``: Adam's step (default the preset's).
+    Returns one row per epoch (train, val); the validation loss of the starting weights is
+    logged."""
+    optimiser = torch.optim.Adam(parameters, lr=learning_rate or config.learning_rate)
+    with torch.no_grad():
+        start = val_loss()
+    log.info("%s: validation loss %.4g before training", label, start)
+    best = start if math.isfinite(start) else math.inf
+    best_state = [copy.deepcopy(m.state_dict()) for m in modules]
+    stale, history = 0, []
     for epoch in range(epochs):
         losses = []
         for loss in train_loss():
@@ -336,9 +354,10 @@ def fit(
             stale += 1
             if stale >= config.patience:
                 break
-    if best_state is not None:
-        for module, state in zip(modules, best_state, strict=True):
-            module.load_state_dict(state)
+    if history and best == start:
+        log.warning("%s: no epoch beat the starting weights (val %.4g); kept them", label, start)
+    for module, state in zip(modules, best_state, strict=True):
+        module.load_state_dict(state)
     return history
 
 
@@ -498,7 +517,10 @@ def _train_filter(
         return float(np.mean([float(loss(w)) for w in windows["val"][:cap]]))
 
     params = list(model.net.parameters()) + list(noise_net.parameters())
-    return fit(params, train, val, [model.net, noise_net], config.filter_epochs, config, label)
+    return fit(
+        params, train, val, [model.net, noise_net], config.filter_epochs, config, label,
+        config.filter_learning_rate,
+    )  # fmt: skip
 
 
 def _save_noise(noise_net: ObsNoiseNet, path: Path) -> None:
