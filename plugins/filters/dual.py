@@ -157,32 +157,6 @@ def sigma_points_from_noise(belief: Belief, noise: Tensor) -> Tensor:
     return belief.mean.unsqueeze(-2) + noise @ factor.transpose(-1, -2)
 
 
-def match_parameter_moments(sigma: Tensor, belief: Belief, layout: StateLayout) -> Tensor:
-    """Sigma points [..., C, n] whose parameter block has exactly the belief's parameter mean
-    and covariance (weights 1/C); the pose block is unchanged.
-
-    The parameters are static, so their predicted moments are the belief's. Taken from C
-    random draws instead, they shrink by ``1 - 1/C`` on average and drift at random with every
-    step: over a few hundred steps the parameter covariance collapses even when no
-    observation tells the parameters apart. The deviations from the draws' own mean are
-    whitened by their own covariance and coloured by the belief's (``mu + L_S L_u^-1
-    (p_i - m_u)``). Needs C > p parameters; batch elements whose draws do not span the
-    parameter space (and every point when C <= p) keep the plain draws.
-    """
-    block = layout.parameter_slice
-    points = sigma[..., block]
-    count, size = points.shape[-2], points.shape[-1]
-    if count <= size:
-        return sigma
-    deviation = points - points.mean(-2, keepdim=True)
-    sample_factor, info = torch.linalg.cholesky_ex(deviation.mT @ deviation / count)
-    belief_factor = cholesky_safe(belief.cov[..., block, block])
-    white = torch.linalg.solve_triangular(sample_factor, deviation.mT, upper=False)
-    matched = belief.mean[..., block].unsqueeze(-2) + (belief_factor @ white).mT
-    matched = torch.where((info == 0)[..., None, None], matched, points)
-    return torch.cat([sigma[..., layout.pose_slice], matched], -1)
-
-
 def _standard_normal(
     shape: tuple[int, ...], generator: torch.Generator, device: torch.device
 ) -> Tensor:
@@ -591,9 +565,7 @@ class DualFilter:
         sigma points [..., C, n] (unprojected parameters) and the model's Prediction.
         """
         belief.check_finite(self.layout.names)
-        sigma = match_parameter_moments(
-            sigma_points_from_noise(belief, state_noise), belief, self.layout
-        )
+        sigma = sigma_points_from_noise(belief, state_noise)
         model_states = project_feasible(sigma, self.layout, inputs.link_size_m)
         prediction = self.process_model.predict(model_states, inputs, dt_s)
         check_prediction(prediction, self.layout)
