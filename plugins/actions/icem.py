@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -29,12 +30,13 @@ from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import ConfigError, DataError
 from vistac.plugins.actions.affordances import link_outline
 from vistac.protocols import Scene
-from vistac.types import Action, FloatArray, Push, ShapeEstimate
+from vistac.types import Action, FloatArray, Push, ShapeEstimate, Superquadric
 
 log = logging.getLogger(__name__)
 
 _FRACTION, _OFFSET, _DURATION = 0, 1, 2
 _INFEASIBLE_COST = 1e3
+_OUTLINE_POINTS = 360
 
 
 def colored_noise(
@@ -114,6 +116,8 @@ class ICEMController(Component):
         self._shifted: FloatArray | None = None
         """Elites of the last plan, shifted by one push: [K, H, 3]."""
         self.last_cost: float = math.nan
+        self._outline: tuple[Superquadric, FloatArray, FloatArray] | None = None
+        """The last link whose outline was traced, and its points and normals."""
 
     # -- Controller protocol ----------------------------------------------------------------
 
@@ -124,7 +128,7 @@ class ICEMController(Component):
         if goal.shape != (3,) or not np.all(np.isfinite(goal)):
             raise ConfigError(f"actions.icem: goal must be 3 finite numbers, got {goal!r}")
         link0 = self.filter.layout.link_pose(self.filter.belief.mean)[0, :3].numpy()
-        outline = _OutlineInLink(scene.shape, link0)
+        outline = _OutlineInLink(scene.shape, link0, self._link_outline)
         with torch.inference_mode():  # rollouts only: no autograd bookkeeping at all
             best, cost = self._optimise(outline, goal, rng)
         self.last_cost = cost
@@ -134,6 +138,13 @@ class ICEMController(Component):
             "%.1f mm", *first.cp_m, math.degrees(first.pd_rad), first.duration_s, cost * 1e3,
         )  # fmt: skip
         return first
+
+    def _link_outline(self, link: Superquadric) -> tuple[FloatArray, FloatArray]:
+        """:func:`link_outline` of ``link`` with ``_OUTLINE_POINTS`` points, traced again
+        only for another link (a new shape estimate): plans between two looks share it."""
+        if self._outline is None or self._outline[0] is not link:
+            self._outline = (link, *link_outline(link, _OUTLINE_POINTS))
+        return self._outline[1], self._outline[2]
 
     # -- iCEM -------------------------------------------------------------------------------
 
@@ -232,14 +243,20 @@ class _OutlineInLink:
     """Link 0's mid-height outline in the belief's link-0 frame, placed at any pose.
 
     points [P, 2] (m) and outward normals [P, 2], counter-clockwise: the outline of the
-    fitted link nearest to the belief's link 0, seen from the belief's pose of link 0
-    ``belief_pose`` (x_m, y_m, theta_rad), so that at that pose it lies where the fit saw it
-    (the fit's own axes, which may be any of its symmetries, do not matter)."""
+    fitted link nearest to the belief's link 0 (traced by ``outline_of``), seen from the
+    belief's pose of link 0 ``belief_pose`` (x_m, y_m, theta_rad), so that at that pose it
+    lies where the fit saw it (the fit's own axes, which may be any of its symmetries, do not
+    matter)."""
 
-    def __init__(self, shape: ShapeEstimate, belief_pose: FloatArray, count: int = 360) -> None:
+    def __init__(
+        self,
+        shape: ShapeEstimate,
+        belief_pose: FloatArray,
+        outline_of: Callable[[Superquadric], tuple[FloatArray, FloatArray]],
+    ) -> None:
         centres = np.asarray(shape.initial_poses, dtype=np.float64)[:, :2]
         nearest = int(np.linalg.norm(centres - belief_pose[:2], axis=1).argmin())
-        points, normals = link_outline(shape.links[nearest], count)
+        points, normals = outline_of(shape.links[nearest])
         rotation = _rotation(-float(belief_pose[2]))
         self.points = (points - belief_pose[:2]) @ rotation.T
         self.normals = normals @ rotation.T

@@ -143,12 +143,15 @@ def nearest_link(points_m: FloatArray, poses: FloatArray, sizes: FloatArray) -> 
 
 
 class _LookAheadModel:
-    """The process model as look-aheads use it: its pose-only prediction where it has one
-    (``predict_pose``: the finger force, which no look-ahead reads, is not computed)."""
+    """The process model as one look-ahead uses it: its ``look_ahead`` prediction where it
+    has one (the learned models: float32 MLPs, no finger force, which no look-ahead reads),
+    else ``predict`` (``filters.analytical``). Make one per look-ahead: it holds the learned
+    model's float32 copy of the weights at the time."""
 
     def __init__(self, model: Any) -> None:
         self.n_links = model.n_links
-        self.predict = getattr(model, "predict_pose", None) or model.predict
+        look_ahead = getattr(model, "look_ahead", None)
+        self.predict = look_ahead() if look_ahead is not None else model.predict
 
 
 @dataclass(frozen=True)
@@ -318,7 +321,7 @@ class DualFilterComponent(Component):
         mean = start.mean.expand(batch, -1)
         belief = Belief(mean, start.cov.expand(batch, -1, -1))
         dt_s = 1.0 / rate_hz
-        with torch.no_grad():
+        with torch.inference_mode():  # prediction only: no autograd bookkeeping at all
             for step in range(round(horizon_s * rate_hz)):
                 inputs = motion.inputs(step * dt_s)
                 state_noise = torch.randn(
@@ -331,7 +334,8 @@ class DualFilterComponent(Component):
                     belief, inputs, dt_s,
                     state_noise.expand(batch, -1, -1), process_noise.expand(batch, -1, -1),
                 )  # fmt: skip
-        return [(belief.mean[i], belief.cov[i]) for i in range(batch)]
+        means, covs = belief.mean.clone(), belief.cov.clone()  # normal tensors again
+        return [(means[i], covs[i]) for i in range(batch)]
 
     def predict_states(
         self, actions: Sequence[Action], rate_hz: float, states: torch.Tensor | None = None
@@ -356,16 +360,18 @@ class DualFilterComponent(Component):
         states = (states * at_rest).unsqueeze(-2)  # [B, 1, n]
         poses = layout.link_pose(states[:, 0]).numpy()[:, :, :3]
         motion = self._action_motion(actions, poses)
-        steps = torch.as_tensor([round(a.duration_s * rate_hz) for a in actions])
+        steps = [round(a.duration_s * rate_hz) for a in actions]
         dt_s = 1.0 / rate_hz
         params = states[..., layout.parameter_slice]
         look_ahead = _LookAheadModel(self.model)
-        with torch.no_grad():
-            for step in range(int(steps.max()) if len(actions) else 0):
+        with torch.inference_mode():  # prediction only: no autograd bookkeeping at all
+            moving = torch.arange(max(steps, default=0))[:, None] < torch.as_tensor(steps)
+            for step, which in enumerate(moving[..., None, None]):  # which: [B, 1, 1]
                 prediction = look_ahead.predict(states, motion.inputs(step * dt_s), dt_s)
                 moved = torch.cat([prediction.pose, params], -1)
-                states = torch.where((step < steps)[:, None, None], moved, states)
-        return states[:, 0] * at_rest
+                states = torch.where(which, moved, states)
+            states = states[:, 0] * at_rest
+        return states.clone()  # a normal tensor again
 
     def _action_motion(self, actions: Sequence[Action], poses: FloatArray) -> _ActionMotion:
         """The gripper's straight motion during each action, with links [B, L, 3] at rest."""

@@ -8,8 +8,11 @@ hyper-parameters; loading checks both against the configuration and names what d
 
 from __future__ import annotations
 
+import copy
+import functools
 import json
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -19,7 +22,7 @@ from torch import Tensor, nn
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
 from vistac.errors import ConfigError, ConfigIssue, DataError
 from vistac.plugins.filters.analytical import PushSettings, analytical_prediction
-from vistac.plugins.filters.nets import FeedForwardProcessNet, GraphProcessNet, layout_of
+from vistac.plugins.filters.nets import MLP, FeedForwardProcessNet, GraphProcessNet, layout_of
 from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput
 
 log = logging.getLogger(__name__)
@@ -116,13 +119,41 @@ def load_checkpoint(net: nn.Module, path: Path, plugin: str, architecture: dict[
     log.info("loaded %s weights from %s", plugin, path)
 
 
+class _LookAheadCopy:
+    """A copy of a net for look-aheads, its MLPs in float32 (the learned process noise stays
+    float64), with the weights it was made from."""
+
+    def __init__(self, net: nn.Module) -> None:
+        with torch.inference_mode(False), torch.no_grad():  # normal tensors in any mode
+            self.source = [weight.detach().clone() for weight in _weights(net)]
+            self.net = copy.deepcopy(net).requires_grad_(False)
+            for module in self.net.modules():
+                if isinstance(module, MLP):
+                    module.float()
+
+    def matches(self, net: nn.Module) -> bool:
+        """Whether ``net`` still has the weights this copy was made from (exactly)."""
+        weights = _weights(net)
+        return len(weights) == len(self.source) and all(
+            torch.equal(weight, source) for weight, source in zip(weights, self.source, strict=True)
+        )
+
+
+def _weights(net: nn.Module) -> list[Tensor]:
+    """Every parameter and buffer of ``net``."""
+    return [*net.parameters(), *net.buffers()]
+
+
 class _LearnedProcessModel(Component):
-    """Shared behaviour of the learned process models: seeded construction, checkpoints."""
+    """Shared behaviour of the learned process models: seeded construction, checkpoints,
+    float32 look-aheads."""
 
     kind = "process_model"
     plugin: ClassVar[str]
     n_links: int | None
     net: nn.Module
+    _look_ahead_options: ClassVar[dict[str, Any]] = {}
+    """Keyword arguments of the net's forward in look-aheads."""
 
     def __init__(self, config: Any, ctx: ComponentContext) -> None:
         super().__init__(config, ctx)
@@ -131,6 +162,7 @@ class _LearnedProcessModel(Component):
             self.net = self._build()
         if config.checkpoint is not None:
             load_checkpoint(self.net, Path(config.checkpoint), self.plugin, self.architecture())
+        self._copy: _LookAheadCopy | None = None
 
     def _build(self) -> nn.Module:
         raise NotImplementedError
@@ -143,6 +175,21 @@ class _LearnedProcessModel(Component):
         """states [..., C, n] -> Prediction (see ``vistac.plugins.filters.state``)."""
         prediction: Prediction = self.net(states, inputs, dt_s)
         return prediction
+
+    def look_ahead(self) -> Callable[[Tensor, ProcessInput, float], Prediction]:
+        """The prediction for one look-ahead (no gradients, the finger force not needed):
+        ``predict`` with the net's MLPs in float32, about twice as fast on CPU. The features,
+        the integration of the predicted change and the process noise stay float64, and so
+        does the Prediction (poses within 1e-9 m and 1e-7 rad of ``predict``'s after 37
+        steps, see tests/test_lookahead_float32.py).
+
+        The copy of the net is made on the first call and again whenever the net's weights
+        have changed since (a checkpoint loaded, a training step; compared exactly, so any
+        change counts): ask anew for each look-ahead."""
+        if self._copy is None or not self._copy.matches(self.net):
+            self._copy = _LookAheadCopy(self.net)
+            log.debug("%s: float32 look-ahead copy of the net made", self.plugin)
+        return functools.partial(self._copy.net, **self._look_ahead_options)
 
     def save_checkpoint(self, path: str | Path) -> None:
         """Write the state dict to ``path`` and the architecture to ``<path>.json``."""
@@ -166,6 +213,7 @@ class GNNProcessModel(_LearnedProcessModel):
         hidden: int = Field(default=64, ge=4, le=1024)
 
     config: Config
+    _look_ahead_options: ClassVar[dict[str, Any]] = {"with_force": False, "reuse_inputs": True}
 
     def _build(self) -> nn.Module:
         return GraphProcessNet(self.config.hidden)
@@ -174,7 +222,7 @@ class GNNProcessModel(_LearnedProcessModel):
         return {"hidden": self.config.hidden}
 
     def predict_pose(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
-        """:meth:`predict` without the finger force (zeros), for look-aheads: ~10% faster."""
+        """:meth:`predict` without the finger force (zeros): ~10% faster."""
         prediction: Prediction = self.net(states, inputs, dt_s, with_force=False)
         return prediction
 

@@ -19,11 +19,16 @@ The network's output per link is a normalised delta (dx, dy, dtheta, dvx, dvy, d
 reference frame; :func:`integrate` scales it (dx, dy by ``SPEED_SCALE_MPS * dt_s``, dtheta by
 ``RATE_SCALE_RADPS * dt_s``, the twist changes by the speed scales), rotates it to the world and
 adds it to the current pose and twist.
+
+The weights are float64. Look-aheads use a copy with float32 MLPs
+(``_LearnedProcessModel.look_ahead``) on float64 states: the features and the integration are
+worked out in the states' dtype, only the MLPs run in their weights' dtype.
 """
 
 from __future__ import annotations
 
 import functools
+import itertools
 from dataclasses import dataclass
 
 import torch
@@ -82,11 +87,41 @@ def wrap(angle_rad: Tensor) -> Tensor:
     return torch.atan2(torch.sin(angle_rad), torch.cos(angle_rad))
 
 
-def rotate(xy: Tensor, angle_rad: Tensor) -> Tensor:
-    """Rotate vectors xy [..., 2] by angle_rad [...] (broadcast)."""
-    c, s = torch.cos(angle_rad), torch.sin(angle_rad)
+@dataclass(frozen=True)
+class Turn:
+    """The cosine and sine of rotation angles [...], for :func:`rotate`."""
+
+    cos: Tensor
+    sin: Tensor
+
+    @staticmethod
+    def of(angle_rad: Tensor) -> Turn:
+        return Turn(torch.cos(angle_rad), torch.sin(angle_rad))
+
+    def squeeze(self) -> Turn:
+        """Without the last dimension (of size 1)."""
+        return Turn(self.cos.squeeze(-1), self.sin.squeeze(-1))
+
+
+def rotate(xy: Tensor, angle_rad: Tensor | Turn) -> Tensor:
+    """Rotate vectors xy [..., 2] by angle_rad [...] (broadcast), or by its Turn."""
+    turn = angle_rad if isinstance(angle_rad, Turn) else Turn.of(angle_rad)
+    c, s = turn.cos, turn.sin
     x, y = xy.unbind(-1)
     return torch.stack([c * x - s * y, s * x + c * y], -1)
+
+
+@functools.lru_cache(maxsize=64)
+def _constant(values: tuple[float, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The tensor [len(values)] (made once; a normal tensor even when first asked for in
+    inference mode, so that autograd can use it later). Never change it in place."""
+    with torch.inference_mode(False):
+        return torch.tensor(values, dtype=dtype, device=device)
+
+
+def constant(values: tuple[float, ...], like: Tensor) -> Tensor:
+    """``like.new_tensor(values)``, made once per dtype and device."""
+    return _constant(values, like.dtype, like.device)
 
 
 def perp(xy: Tensor) -> Tensor:
@@ -94,12 +129,12 @@ def perp(xy: Tensor) -> Tensor:
     return torch.stack([-xy[..., 1], xy[..., 0]], -1)
 
 
-def hinge_points(pose: Tensor, inputs: ProcessInput) -> Tensor:
-    """World position of each joint for the current link poses.
+def hinge_offsets(inputs: ProcessInput) -> Tensor:
+    """Position of each joint k in the frame of link k: [..., 1, L - 1, 2] (m).
 
     Joint k joins links k and k + 1; it lies midway between link k's +x side centre and link
     k + 1's -x side centre (footprint boxes from ``link_size_m``), placed with the initial
-    relative pose ``link_offset``. pose: [..., C, L, 6]. Returns [..., C, L - 1, 2].
+    relative pose ``link_offset``.
     """
     offset = inputs.link_offset.unsqueeze(-3)  # [..., 1, L, 3]
     size = inputs.link_size_m.unsqueeze(-3)  # [..., 1, L, 2]
@@ -109,8 +144,15 @@ def hinge_points(pose: Tensor, inputs: ProcessInput) -> Tensor:
     zero = torch.zeros_like(rel_theta)
     parent_side = torch.stack([size[..., :-1, 0], zero], -1)
     child_side = rel_xy + rotate(torch.stack([-size[..., 1:, 0], zero], -1), rel_theta)
-    hinge_in_parent = 0.5 * (parent_side + child_side)
-    return pose[..., :-1, :2] + rotate(hinge_in_parent, pose[..., :-1, 2])
+    return 0.5 * (parent_side + child_side)
+
+
+def hinge_points(pose: Tensor, inputs: ProcessInput, offsets: Tensor | None = None) -> Tensor:
+    """World position of each joint (see :func:`hinge_offsets`, or ``offsets`` from it) for
+    the current link poses [..., C, L, 6]. Returns [..., C, L - 1, 2]."""
+    if offsets is None:
+        offsets = hinge_offsets(inputs)
+    return pose[..., :-1, :2] + rotate(offsets, pose[..., :-1, 2])
 
 
 def _frame(inputs: ProcessInput) -> tuple[Tensor, Tensor]:
@@ -118,14 +160,23 @@ def _frame(inputs: ProcessInput) -> tuple[Tensor, Tensor]:
     return inputs.tcp[..., :2].unsqueeze(-2), inputs.pd_rad.unsqueeze(-1)
 
 
-def link_features(states: Tensor, inputs: ProcessInput) -> Tensor:
-    """Per-link features in the reference frame: [..., C, L, LINK_FEATURE_DIM]."""
+def frame_turns(inputs: ProcessInput) -> tuple[Turn, Turn]:
+    """The turns [..., 1, 1, 1] into the reference frame (by -pd_rad) and back to the world
+    (by +pd_rad), broadcast over C, L and a pair of vectors."""
+    angle = inputs.pd_rad[..., None, None, None]
+    return Turn.of(-angle), Turn.of(angle)
+
+
+def link_features(states: Tensor, inputs: ProcessInput, into: Turn | None = None) -> Tensor:
+    """Per-link features in the reference frame: [..., C, L, LINK_FEATURE_DIM]. into: the
+    first of :func:`frame_turns`."""
     layout = layout_of(states)
     pose = layout.link_pose(states)
     origin, angle = _frame(inputs)
     angle_l = angle.unsqueeze(-1)  # [..., 1, 1]
     position_velocity = torch.stack([pose[..., :2] - origin.unsqueeze(-2), pose[..., 3:5]], -2)
-    xy, velocity = rotate(position_velocity, -angle_l.unsqueeze(-1)).unbind(-2)
+    turn = -angle_l.unsqueeze(-1) if into is None else into
+    xy, velocity = rotate(position_velocity, turn).unbind(-2)
     theta = wrap(pose[..., 2] - angle_l)
     size = inputs.link_size_m.unsqueeze(-3).expand(*pose.shape[:-1], 2)
     features = torch.cat(
@@ -140,7 +191,7 @@ def link_features(states: Tensor, inputs: ProcessInput) -> Tensor:
         ],
         -1,
     )
-    return features / features.new_tensor(_LINK_FEATURE_SCALES)
+    return features / constant(_LINK_FEATURE_SCALES, features)
 
 
 def robot_features(inputs: ProcessInput) -> Tensor:
@@ -160,21 +211,27 @@ def robot_features(inputs: ProcessInput) -> Tensor:
         ],
         -1,
     )
-    return features / features.new_tensor(_ROBOT_FEATURE_SCALES)
+    return features / constant(_ROBOT_FEATURE_SCALES, features)
 
 
-def integrate(states: Tensor, delta: Tensor, inputs: ProcessInput, dt_s: float) -> Tensor:
-    """Apply normalised reference-frame deltas [..., C, L, 6] to the current poses.
+def integrate(
+    states: Tensor, delta: Tensor, inputs: ProcessInput, dt_s: float, back: Turn | None = None
+) -> Tensor:
+    """Apply normalised reference-frame deltas [..., C, L, 6] to the current poses. back: the
+    second of :func:`frame_turns`.
 
     Returns the next time-varying block [..., C, 6 L] (world frame).
     """
     pose = layout_of(states).link_pose(states)
     angle = _frame(inputs)[1][..., None, None]  # [..., 1, 1, 1]
     planar = delta.unflatten(-1, (2, 3))  # (dx, dy, dtheta), (dvx, dvy, domega)
-    change = torch.cat([rotate(planar[..., :2], angle), planar[..., 2:]], -1).flatten(-2)
-    scales = [SPEED_SCALE_MPS * dt_s] * 2 + [RATE_SCALE_RADPS * dt_s]
-    scales += [SPEED_SCALE_MPS] * 2 + [RATE_SCALE_RADPS]
-    return (pose + change * delta.new_tensor(scales)).flatten(-2)
+    turn = angle if back is None else back
+    change = torch.cat([rotate(planar[..., :2], turn), planar[..., 2:]], -1)
+    scales = (
+        *(SPEED_SCALE_MPS * dt_s, SPEED_SCALE_MPS * dt_s, RATE_SCALE_RADPS * dt_s),
+        *(SPEED_SCALE_MPS, SPEED_SCALE_MPS, RATE_SCALE_RADPS),
+    )
+    return (pose + change.flatten(-2) * constant(scales, delta)).flatten(-2)
 
 
 def force_to_world(force: Tensor, inputs: ProcessInput) -> Tensor:
@@ -188,7 +245,18 @@ class MLP(nn.Sequential):
     ever gets the fresh output of the layer before."""
 
     FEATURE_MAJOR_MIN_ROWS = 256
-    """From this many rows on, ``columns`` multiplies feature-major (see there)."""
+    """From this many rows on, ``columns`` multiplies feature-major (see there)..."""
+    FEATURE_MAJOR_MIN_ROWS_FLOAT32 = 4096
+    """... and from this many in float32, where the BLAS does the row-major products about
+    as fast up to there (hidden 32, one thread)."""
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The weights' dtype, which the inputs must have (float64; float32 in a copy made
+        for look-aheads, see ``_LearnedProcessModel.look_ahead``)."""
+        first = self[0]
+        assert isinstance(first, nn.Linear)
+        return first.weight.dtype
 
     def columns(self, *inputs: Tensor) -> Tensor:
         """The layers on the concatenation of ``inputs`` (rows [n, d_i], or [d_i] for the same
@@ -200,8 +268,8 @@ class MLP(nn.Sequential):
         the order the BLAS does fastest. With fewer rows, where the cost per call dominates,
         the concatenated rows go through the layers as usual.
         """
-        n_rows = max(len(part) if part.dim() == 2 else 0 for part in inputs)
-        if n_rows < self.FEATURE_MAJOR_MIN_ROWS:
+        n_rows = max(part.shape[0] if part.dim() == 2 else 0 for part in inputs)
+        if n_rows < self._feature_major_min_rows(inputs[0].dtype):
             rows = [part if part.dim() == 2 else part.expand(n_rows, -1) for part in inputs]
             return self._layers(torch.cat(rows, -1), 0, feature_major=False).t()
         first = self[0]
@@ -219,20 +287,40 @@ class MLP(nn.Sequential):
             hidden = hidden.addmm_(weight, part.t())
         return self._layers(hidden, 1, feature_major=True)
 
+    def _feature_major_min_rows(self, dtype: torch.dtype) -> int:
+        if dtype == torch.float32:
+            return self.FEATURE_MAJOR_MIN_ROWS_FLOAT32
+        return self.FEATURE_MAJOR_MIN_ROWS
+
     def forward(self, features: Tensor) -> Tensor:
         output = self.columns(features.reshape(-1, features.shape[-1])).t()
         return output.reshape(*features.shape[:-1], output.shape[-1])
 
     def _layers(self, hidden: Tensor, start: int, feature_major: bool) -> Tensor:
-        """Layers ``start``... on rows [n, d] or, feature-major, on [d, n]."""
-        for layer in list(self)[start:]:
-            if not isinstance(layer, nn.Linear):
-                hidden = layer(hidden)
-            elif feature_major:
-                hidden = torch.addmm(layer.bias.unsqueeze(-1), layer.weight, hidden)
+        """Layers ``start``... on rows [n, d] or, feature-major, on [d, n]. Calls the
+        functions directly: for a few dozen rows, ``nn.Module``'s attribute look-up and call
+        cost as much as the products."""
+        for layer in itertools.islice(self._modules.values(), start, None):
+            if isinstance(layer, nn.Linear):
+                weight, bias = _weight_and_bias(layer)
+                if feature_major:
+                    hidden = torch.addmm(bias.unsqueeze(-1), weight, hidden)
+                else:
+                    hidden = nn.functional.linear(hidden, weight, bias)
+            elif isinstance(layer, nn.SiLU):
+                hidden = nn.functional.silu(hidden, inplace=layer.inplace)
             else:
-                hidden = nn.functional.linear(hidden, layer.weight, layer.bias)
+                assert layer is not None
+                hidden = layer(hidden)
         return hidden
+
+
+def _weight_and_bias(layer: nn.Linear) -> tuple[Tensor, Tensor]:
+    """A linear layer's weight and bias, read from its parameter dict (``layer.weight`` goes
+    through ``nn.Module.__getattr__``)."""
+    weight, bias = layer._parameters["weight"], layer._parameters["bias"]
+    assert weight is not None and bias is not None
+    return weight, bias
 
 
 def mlp(n_in: int, hidden: int, n_out: int) -> MLP:
@@ -271,19 +359,24 @@ class LearnedNoise(nn.Module):
 # Graph network
 
 
+def _one_hot(index: int, like: Tensor, zeros: int = 0) -> Tensor:
+    """(0, 0, 0) with a 1 at index, then ``zeros`` more zeros: [3 + zeros], like's dtype."""
+    return constant(tuple(float(i == index) for i in range(3 + zeros)), like)
+
+
 def _node(features: Tensor, node_type: int) -> Tensor:
     """Append the node type one-hot (link, robot, table) to features [..., NODE_DIM - 3]."""
-    one_hot = features.new_zeros(*features.shape[:-1], 3)
-    one_hot[..., node_type] = 1.0
+    one_hot = _one_hot(node_type, features).expand(*features.shape[:-1], 3)
     return torch.cat([features, one_hot], -1)
 
 
 def _edge(value: Tensor, kind: int, geometry: Tensor | None = None) -> Tensor:
-    """Static edge features [..., EDGE_DIM] from value [...] and geometry [..., 2]."""
-    one_hot = value.new_zeros(*value.shape, 3)
-    one_hot[..., kind - 1] = 1.0
+    """Static edge features [..., EDGE_DIM] from value [...] and geometry [..., 2] (zeros for
+    None)."""
     if geometry is None:
-        geometry = value.new_zeros(*value.shape, 2)
+        rest = _one_hot(kind - 1, value, zeros=2).expand(*value.shape, EDGE_DIM - 1)
+        return torch.cat([value.unsqueeze(-1), rest], -1)
+    one_hot = _one_hot(kind - 1, value).expand(*value.shape, 3)
     return torch.cat([value.unsqueeze(-1), one_hot, geometry], -1)
 
 
@@ -380,6 +473,61 @@ def chain_of(acted: tuple[int, ...], n_links: int, n_points: int) -> _Chain:
         return _Chain(acted, n_links, n_points)
 
 
+def _link_tail(inputs: ProcessInput, dtype: torch.dtype) -> Tensor:
+    """The last features of the link nodes: [..., 1, 1, 4] = is_pull, the link one-hot."""
+    is_pull = inputs.is_pull.to(dtype)[..., None, None, None]
+    return _node(is_pull, _LINK)
+
+
+@dataclass(frozen=True)
+class _InputParts:
+    """What :class:`GraphProcessNet` takes from the inputs alone, apart from the TCP position
+    (which only the link features use): the same at every step of a straight look-ahead."""
+
+    chain: _Chain
+    robot: Tensor
+    """Robot nodes [B C, D] (the MLPs' dtype)."""
+    robot_edge: Tensor
+    """The edges robot -> acted link [B C, EDGE_DIM] (the MLPs' dtype)."""
+    table: Tensor
+    """The table node [D] (the MLPs' dtype)."""
+    hinge_offsets: Tensor
+    """Each joint in the frame of its first link [..., 1, L - 1, 2] (:func:`hinge_offsets`)."""
+    into: Turn
+    """Into the reference frame and ..."""
+    back: Turn
+    """... back to the world [..., 1, 1, 1] (:func:`frame_turns`)."""
+    link_tail: Tensor
+    """The last features of each link node [..., 1, 1, 4]: is_pull and the type one-hot."""
+    process_var: Tensor
+    """[..., 6 L] (the states' dtype)."""
+
+
+@dataclass(frozen=True)
+class _InputKey:
+    """What :class:`_InputParts` are made from: the states' shape and dtype, the weights'
+    dtype, and every input but the TCP position (tensors)."""
+
+    shape: tuple[torch.Size, torch.dtype, torch.dtype]
+    tensors: tuple[Tensor, ...]
+
+    @staticmethod
+    def of(states: Tensor, inputs: ProcessInput, weights: torch.dtype) -> _InputKey:
+        fields = (inputs.pd_rad, inputs.is_pull, inputs.link, inputs.link_size_m)
+        tensors = (inputs.tcp[..., 2:], *fields, inputs.link_offset)
+        return _InputKey((states.shape, states.dtype, weights), tensors)
+
+    def copy(self) -> _InputKey:
+        """A key that later in-place changes of the inputs do not alter."""
+        return _InputKey(self.shape, tuple(tensor.clone() for tensor in self.tensors))
+
+    def equals(self, other: _InputKey) -> bool:
+        return self.shape == other.shape and all(
+            a.shape == b.shape and torch.equal(a, b)
+            for a, b in zip(self.tensors, other.tensors, strict=True)
+        )
+
+
 class GraphProcessNet(nn.Module):
     """Causal graph network (paper 1, III-F2, Algorithm 1) for any number of links.
 
@@ -400,6 +548,8 @@ class GraphProcessNet(nn.Module):
         self.f_n = mlp(NODE_DIM + hidden, hidden, NODE_DIM)
         self.tac_net = mlp(hidden, hidden, 2)
         self.noise = LearnedNoise()
+        self._last_inputs: tuple[_InputKey, _InputParts] | None = None
+        """The key and parts of the last call with ``reuse_inputs``."""
 
     def _message(self, sender: Tensor, receiver: Tensor, edge: Tensor) -> Tensor:
         """f_e of sender, receiver [n, D] (or [D] for all) and edge [n, EDGE_DIM] -> [n, H]."""
@@ -410,80 +560,122 @@ class GraphProcessNet(nn.Module):
         return node + self.f_n.columns(node, message).t()
 
     def forward(
-        self, states: Tensor, inputs: ProcessInput, dt_s: float, with_force: bool = True
+        self,
+        states: Tensor,
+        inputs: ProcessInput,
+        dt_s: float,
+        with_force: bool = True,
+        reuse_inputs: bool = False,
     ) -> Prediction:
         """states [..., C, n] -> Prediction (pose [..., C, 6 L], force_n [..., C, 2] (zero
-        without ``with_force``), process_var [..., 6 L])."""
-        layout = layout_of(states)
-        n_links, (*batch, n_points, _) = layout.n_links, states.shape
-        acted = inputs.link.to(torch.int64).expand(batch).reshape(-1)
-        chain = chain_of(tuple(acted.tolist()), n_links, n_points)
-        links = self._link_nodes(states, inputs).reshape(-1, NODE_DIM)  # [B C L, D]
-        robot = self._robot_node(inputs).unsqueeze(-2).expand(*batch, n_points, NODE_DIM)
-        robot = robot.reshape(-1, NODE_DIM)  # [B C, D]
-        is_pull = inputs.is_pull.to(states.dtype).expand(batch).unsqueeze(-1)
-        robot_edge = _edge(is_pull.expand(*batch, n_points), _EDGE_ROBOT).reshape(-1, EDGE_DIM)
-        friction = layout.link_parameters(states)[..., 1].reshape(-1) / FRICTION_SCALE
-        support_edges = _edge(friction, _EDGE_SUPPORT)  # [B C L, EDGE_DIM]
+        without ``with_force``), process_var [..., 6 L]), in the states' dtype.
 
-        joint_edges = self._joint_edges(states, inputs)
+        The features, and the integration of the predicted change, are worked out in the
+        states' dtype, the MLPs run in their weights' (a copy for look-aheads has float32
+        MLPs and takes float64 states). ``reuse_inputs`` (without gradients only): reuse what
+        the last call took from the inputs alone (:class:`_InputParts`) while those inputs
+        are equal, as at every step of a straight look-ahead."""
+        parts = self._input_parts(states, inputs, reuse_inputs and not torch.is_grad_enabled())
+        layout, weights = layout_of(states), self.f_e.dtype
+        links = self._link_nodes(states, inputs, parts).reshape(-1, NODE_DIM).to(weights)
+        friction = layout.link_parameters(states)[..., 1].reshape(-1) / FRICTION_SCALE
+        support_edges = _edge(friction.to(weights), _EDGE_SUPPORT)  # [B C L, EDGE_DIM]
+        joint_edges = self._joint_edges(states, inputs, parts).to(weights)
         nodes = links.clone()  # updated in place, phase by phase
-        self._propagate_cause(nodes, robot, robot_edge, support_edges, joint_edges, chain)
-        self._propagate_effect(nodes, joint_edges, chain)
-        force = states.new_zeros(*batch, n_points, 2)
-        if with_force:
-            to_robot = self._message(nodes.index_select(0, chain.acted_rows), robot, robot_edge)
-            force = self.tac_net.columns(to_robot).t().reshape(*batch, n_points, 2)
-            force = force_to_world(force, inputs)
+        self._propagate_cause(nodes, parts, support_edges, joint_edges)
+        self._propagate_effect(nodes, joint_edges, parts.chain)
         delta = nodes[:, :MOTION_DIM] - links[:, :MOTION_DIM]
-        delta = delta.reshape(*batch, n_points, n_links, MOTION_DIM)
+        delta = delta.reshape(*states.shape[:-1], layout.n_links, MOTION_DIM).to(states.dtype)
+        force = states.new_zeros(*states.shape[:-1], 2)
+        if with_force:
+            force = self._force(nodes, parts, inputs, force)
         return Prediction(
-            pose=integrate(states, delta, inputs, dt_s),
+            pose=integrate(states, delta, inputs, dt_s, parts.back),
             force_n=force,
-            process_var=self.noise(inputs.tcp.shape[:-1], n_links),
+            process_var=parts.process_var,
+        )
+
+    def _force(
+        self, nodes: Tensor, parts: _InputParts, inputs: ProcessInput, like: Tensor
+    ) -> Tensor:
+        """The tactile force (world, N), shaped and typed ``like`` [..., C, 2], from the
+        updated nodes [B C L, D]."""
+        acted = nodes.index_select(0, parts.chain.acted_rows)
+        to_robot = self._message(acted, parts.robot, parts.robot_edge)
+        force = self.tac_net.columns(to_robot).t()  # [B C, 2]
+        return force_to_world(force.reshape(like.shape).to(like.dtype), inputs)
+
+    def _input_parts(self, states: Tensor, inputs: ProcessInput, reuse: bool) -> _InputParts:
+        """What the graph takes from the inputs alone; with ``reuse``, the last call's while
+        the inputs it depends on, the states' shape and the dtypes are the same."""
+        if not reuse:
+            return self._make_input_parts(states, inputs)
+        key = _InputKey.of(states, inputs, self.f_e.dtype)
+        if self._last_inputs is None or not self._last_inputs[0].equals(key):
+            self._last_inputs = (key.copy(), self._make_input_parts(states, inputs))
+        return self._last_inputs[1]
+
+    def _make_input_parts(self, states: Tensor, inputs: ProcessInput) -> _InputParts:
+        n_links, (*batch, n_points, _) = layout_of(states).n_links, states.shape
+        weights = self.f_e.dtype
+        acted = inputs.link.to(torch.int64).expand(batch).reshape(-1)
+        robot = self._robot_node(inputs).unsqueeze(-2).expand(*batch, n_points, NODE_DIM)
+        is_pull = inputs.is_pull.to(weights).expand(batch).unsqueeze(-1)
+        robot_edge = _edge(is_pull.expand(*batch, n_points), _EDGE_ROBOT)
+        into, back = frame_turns(inputs)
+        return _InputParts(
+            chain=chain_of(tuple(acted.tolist()), n_links, n_points),
+            robot=robot.reshape(-1, NODE_DIM).to(weights),
+            robot_edge=robot_edge.reshape(-1, EDGE_DIM),
+            table=_node(robot.new_zeros(NODE_DIM - 3, dtype=weights), _TABLE),
+            hinge_offsets=hinge_offsets(inputs),
+            into=into,
+            back=back,
+            link_tail=_link_tail(inputs, states.dtype),
+            process_var=self.noise(inputs.tcp.shape[:-1], n_links).to(states.dtype),
         )
 
     @staticmethod
-    def _joint_edges(states: Tensor, inputs: ProcessInput) -> Tensor:
+    def _joint_edges(states: Tensor, inputs: ProcessInput, parts: _InputParts) -> Tensor:
         """Static features of the edges across each joint k towards its two links:
         [2 B C (L - 1), EDGE_DIM], towards link k in the first B C (L - 1) rows, towards link
         k + 1 in the rest (see ``_Chain.joint_rows``)."""
         layout = layout_of(states)
         pose = layout.link_pose(states)
-        hinges = hinge_points(pose, inputs)  # [..., C, L - 1, 2]
+        hinges = hinge_points(pose, inputs, parts.hinge_offsets)  # [..., C, L - 1, 2]
         receivers = torch.stack([pose[..., :-1, :2], pose[..., 1:, :2]])  # [2, ..., C, L - 1, 2]
-        geometry = rotate(hinges - receivers, -inputs.pd_rad[..., None, None]) / SIZE_SCALE_M
+        geometry = rotate(hinges - receivers, parts.into.squeeze()) / SIZE_SCALE_M
         friction = layout.joint_friction(states) / JOINT_FRICTION_SCALE_NM  # [..., C, L - 1]
         edges = _edge(friction.expand(geometry.shape[:-1]), _EDGE_JOINT, geometry)
         return edges.reshape(-1, EDGE_DIM)
 
     def _cause_update(
-        self, nodes: Tensor, rows: Tensor, sender: Tensor, edge: Tensor, support_edges: Tensor
+        self,
+        nodes: Tensor,
+        rows: Tensor,
+        sender: Tensor,
+        edge: Tensor,
+        support: tuple[Tensor, Tensor],
     ) -> None:
         """Update ``rows`` [n] of nodes [B C L, D] in place by the cause message from sender
-        [n, D] over edge [n, EDGE_DIM] plus the table's support message (support_edges
-        [B C L, EDGE_DIM])."""
+        [n, D] over edge [n, EDGE_DIM] plus the table's support message: ``support`` holds
+        the table node [D] (the same for every row) and the support edges [B C L, EDGE_DIM]."""
+        table, support_edges = support
         node = nodes.index_select(0, rows)
-        table = _node(node.new_zeros(NODE_DIM - 3), _TABLE)  # [D]: the same for every row
         message = self._message(sender, node, edge)
         message = message + self._message(table, node, support_edges.index_select(0, rows))
         nodes.index_copy_(0, rows, self._update(node, message))
 
     def _propagate_cause(
-        self,
-        nodes: Tensor,
-        robot: Tensor,
-        robot_edge: Tensor,
-        support_edges: Tensor,
-        joint_edges: Tensor,
-        chain: _Chain,
+        self, nodes: Tensor, parts: _InputParts, support_edges: Tensor, joint_edges: Tensor
     ) -> None:
         """Breadth-first from the robot: the links at depth d are updated from their parent's
         (already updated) features plus their support message. nodes [B C L, D], in place."""
-        self._cause_update(nodes, chain.acted_rows, robot, robot_edge, support_edges)
-        for receivers, senders, edges in chain.cause:
+        support = (parts.table, support_edges)
+        self._cause_update(nodes, parts.chain.acted_rows, parts.robot, parts.robot_edge, support)
+        for receivers, senders, edges in parts.chain.cause:
             sender, edge = nodes.index_select(0, senders), joint_edges.index_select(0, edges)
-            self._cause_update(nodes, receivers, sender, edge, support_edges)
+            self._cause_update(nodes, receivers, sender, edge, support)
 
     def _propagate_effect(self, nodes: Tensor, joint_edges: Tensor, chain: _Chain) -> None:
         """Back from the deepest links: every link with children is updated by the sum of the
@@ -499,11 +691,17 @@ class GraphProcessNet(nn.Module):
                 message = summed.index_add_(0, phase.slots, message)  # side +1 first
             nodes.index_copy_(0, phase.updated, self._update(node, message))
 
-    def _link_nodes(self, states: Tensor, inputs: ProcessInput) -> Tensor:
-        """[..., C, L, NODE_DIM]: link features, is_pull, type."""
-        features = link_features(states, inputs)
-        is_pull = inputs.is_pull.to(states.dtype)[..., None, None, None]
-        return _node(torch.cat([features, is_pull.expand(*features.shape[:-1], 1)], -1), _LINK)
+    def _link_nodes(
+        self, states: Tensor, inputs: ProcessInput, parts: _InputParts | None = None
+    ) -> Tensor:
+        """[..., C, L, NODE_DIM]: link features, is_pull, type (the latter and the turn into
+        the reference frame from ``parts`` where given)."""
+        if parts is None:
+            into, tail = None, _link_tail(inputs, states.dtype)
+        else:
+            into, tail = parts.into, parts.link_tail
+        features = link_features(states, inputs, into)
+        return torch.cat([features, tail.expand(*features.shape[:-1], 4)], -1)
 
     def _robot_node(self, inputs: ProcessInput) -> Tensor:
         """[..., NODE_DIM]: motion 6, cos/sin 2, zero parameters 4 and size 2, is_pull, type."""
@@ -561,10 +759,10 @@ class FeedForwardProcessNet(nn.Module):
             ],
             -1,
         )
-        out = self.f(features)
+        out = self.f(features.to(self.f.dtype)).to(states.dtype)
         delta = out[..., :-2].unflatten(-1, (self.n_links, MOTION_DIM))
         return Prediction(
             pose=integrate(states, delta, inputs, dt_s),
             force_n=force_to_world(out[..., -2:], inputs),
-            process_var=self.noise(inputs.tcp.shape[:-1], self.n_links),
+            process_var=self.noise(inputs.tcp.shape[:-1], self.n_links).to(states.dtype),
         )
