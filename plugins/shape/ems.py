@@ -19,12 +19,21 @@ Extensions beyond the paper: the shear ``X = f(y) x + s y`` after the taper (``s
 [-1, 1], fitted with the taper and flipped in the S-step; ``Superquadric.taper`` then holds
 (kappa1, kappa2, shear)) so that right triangles and skewed tapers are representable; analytic
 Jacobians; EM on a coarse subset, then a few iterations on ``max_fit_points``.
+
+Speed: the fits of one step (the links of a joint fit; the single link and the last view's
+links refitted) run as one batch, each row with its own EM, S-step and Levenberg-Marquardt
+state, so that each array operation serves all of them; a Jacobian is computed only when a
+step is accepted and will be used, and distances, the other links' excluded points and
+covariances are evaluated once (the covariance only when asked for).
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+from typing import Any, ClassVar, Self
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,10 +46,8 @@ from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
 from vistac.plugins.shape.superquadric import (
     distance_to_surface_m,
-    inside_outside,
-    radial_depth_m,
     radial_distance_gradient,
-    radial_distance_m,
+    radial_distance_rows,
     surface_area_m2,
 )
 from vistac.types import FloatArray, PointCloud, ShapeEstimate, Superquadric
@@ -99,8 +106,10 @@ _AREA_NOISE_CAP_M = 0.002
 _EXCLUSION_LEVELS = (0.25, 0.5, 0.75)
 _EXCLUSION_POINTS = 100
 _EXCLUSION_WEIGHT = 1.0
+_FAR_M = 1e3  # where excluded points are padded to one count per batch: never inside
 
 IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True)
@@ -125,114 +134,214 @@ class EMSResult:
 
     params: [14] in ``PARAMETER_NAMES`` order; std: [14] standard deviations (0 where the
     parameter is fixed by the model); covariance: [14, 14]; inlier_probability: [N] posterior
-    of eq. 9 per point.
+    of eq. 9 per point of ``cloud_m`` [N, 3] (the fitted points, or a whole cloud of which
+    they are part), whose radial distances are ``distance_m`` [N].
     """
 
     superquadric: Superquadric
     params: FloatArray
-    std: FloatArray
-    covariance: FloatArray
     inlier_probability: FloatArray
     noise_m: float
     nll: float
+    fit_points_m: FloatArray = field(repr=False, compare=False)
+    """The points [M, 3] the superquadric was fitted to (for the covariance)."""
+    options: EMSOptions = field(repr=False, compare=False)
+    cloud_m: FloatArray = field(repr=False, compare=False)
+    distance_m: FloatArray = field(repr=False, compare=False)
+
+    def distance_to(self, points_m: FloatArray) -> FloatArray:
+        """Radial distance [N] of points [N, 3] to the superquadric (known for ``cloud_m``)."""
+        if points_m is self.cloud_m:
+            return self.distance_m
+        return distance_to_surface_m(self.superquadric, points_m)
+
+    @cached_property
+    def covariance(self) -> FloatArray:
+        """[14, 14], from the Jacobian at the optimum over ``fit_points_m`` (computed when
+        first asked: most fits of a multi-link search are discarded)."""
+        problem = _make_problem([self.fit_points_m], self.options)
+        noise_var_m2 = np.array([self.noise_m**2])
+        weights = problem.posterior(problem.evaluate(self.params[None]).distance, noise_var_m2)
+        return _parameter_covariance(problem, self.params, weights[0], float(noise_var_m2[0]))
+
+    @property
+    def std(self) -> FloatArray:
+        """[14]."""
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
 
 
 @dataclass(frozen=True)
-class _Problem:
-    """The points to fit and what the model may vary."""
+class _Rows:
+    """Values batched by row (B rows): the fields named in ``ROWS`` (arrays, or other
+    :class:`_Rows`) have one row per fit; ``take`` and ``put`` select and replace rows."""
 
-    points_m: FloatArray
+    ROWS: ClassVar[tuple[str, ...]]
+
+    def __len__(self) -> int:
+        return len(getattr(self, self.ROWS[0]))
+
+    def take(self, rows: IntArray) -> Self:
+        """The rows [B'] alone (repeats allowed); itself when they are all rows in order."""
+        if np.array_equal(rows, np.arange(len(self))):
+            return self
+        return replace(self, **{name: _take(getattr(self, name), rows) for name in self.ROWS})
+
+    def put(self, rows: IntArray, other: Self) -> Self:
+        """A copy with the rows [B'] (sorted, distinct) replaced by those of ``other``."""
+        if len(rows) in (0, len(self)):
+            return other if len(rows) else self
+        return replace(
+            self,
+            **{name: _put(getattr(self, name), rows, getattr(other, name)) for name in self.ROWS},
+        )
+
+
+def _take(value: Any, rows: IntArray) -> Any:
+    """The rows [B'] of an array or of :class:`_Rows`."""
+    return value.take(rows) if isinstance(value, _Rows) else value[rows]
+
+
+def _put(value: Any, rows: IntArray, other: Any) -> Any:
+    """A copy of an array or of :class:`_Rows` with the rows [B'] replaced by ``other``."""
+    if isinstance(value, _Rows):
+        return value.put(rows, other)
+    out = value.copy()
+    out[rows] = other
+    return out
+
+
+@dataclass(frozen=True)
+class _Evaluation(_Rows):
+    """Superquadrics [B] against their problems' points: the radial distance [B, N] of the
+    points to fit, and of the excluded points whether they lie inside [B, M] and their radial
+    depth inside [B, M] (0 outside)."""
+
+    ROWS = ("distance", "inside", "depth")
+    distance: FloatArray
+    inside: BoolArray
+    depth: FloatArray
+
+
+@dataclass(frozen=True)
+class _Problem(_Rows):
+    """Fitting problems of one size, one per row (B of them): the points to fit and what the
+    model may vary.
+
+    points_t [B, 3, N + M]: the coordinate rows of the N points to fit, then of M points that
+    the superquadric must not enclose (the hidden volume of other links; their radial depth
+    inside is penalised), evaluated in one pass; lower, upper [B, 14]; log_outlier_density
+    [B]."""
+
+    ROWS = ("points_t", "lower", "upper", "log_outlier_density")
+    points_t: FloatArray
+    count: int
     free: IntArray
     on_table: bool
     lower: FloatArray
     upper: FloatArray
-    log_outlier_density: float
+    log_outlier_density: FloatArray
     options: EMSOptions
-    exclusion: _Problem | None = None
 
     def expand(self, free_values: FloatArray, base: FloatArray) -> FloatArray:
-        """Full parameter vectors [B, 14] from free values [B, F] on top of ``base`` [14]."""
-        full = np.repeat(base[None, :], len(free_values), axis=0)
+        """Full parameter vectors [B, 14] from free values [B, F] on top of ``base`` [B, 14]."""
+        full = base.copy()
         full[:, self.free] = free_values
         if self.on_table:
             full[:, _Z] = full[:, _A3]
         return full
 
-    def _local(self, full: FloatArray) -> FloatArray:
-        """The points in each superquadric's frame: full [B, 14] -> [B, N, 3]."""
+    def evaluate(self, full: FloatArray) -> _Evaluation:
+        """The points against the superquadric of each row, full [B, 14]."""
         rotation = rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
-        return np.matmul(self.points_m - full[:, None, [_X, _Y, _Z]], rotation)
+        local = np.matmul(rotation.swapaxes(1, 2), self.points_t - full[:, [_X, _Y, _Z], None])
+        distance, log_f = radial_distance_rows(
+            local, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER]
+        )
+        excluded = slice(self.count, None)
+        inside = log_f[:, excluded] < 0
+        return _Evaluation(distance[:, : self.count], inside, distance[:, excluded] * inside)
 
-    def distances(self, full: FloatArray) -> FloatArray:
-        """Radial distance of every point to each superquadric: full [B, 14] -> [B, N]."""
-        return radial_distance_m(self._local(full), full[:, _SCALE], full[:, _EXPONENTS],
-                                 full[:, _TAPER])
-
-    def inside(self, full: FloatArray) -> FloatArray:
-        """Whether each point lies inside each superquadric: full [B, 14] -> [B, N]."""
-        return inside_outside(self._local(full), full[:, _SCALE], full[:, _EXPONENTS],
-                              full[:, _TAPER]) < 1
-
-    def penetration(self, full: FloatArray) -> FloatArray:
-        """Radial depth of the points inside each superquadric (0 outside): [B, N]."""
-        return radial_depth_m(self._local(full), full[:, _SCALE], full[:, _EXPONENTS],
-                              full[:, _TAPER])
-
-    def distance_gradient(self, params: FloatArray) -> FloatArray:
-        """Gradient [N, F] of each point's radial distance to the superquadric of params [14]
-        with respect to the free parameters (on a table, a3's column includes z = a3)."""
-        rotation = rotation_zyx(params[None, _YAW], params[None, _PITCH],
-                                 params[None, _ROLL])[0]
-        offset = self.points_m - params[[_X, _Y, _Z]]
-        _, grad = radial_distance_gradient(offset @ rotation, params[_SCALE],
-                                           params[_EXPONENTS], params[_TAPER])
-        grad_q = grad[:, :3]
-        full = np.empty((len(offset), len(PARAMETER_NAMES)))
-        full[:, _SHAPE_INDICES] = grad[:, 3:]
-        full[:, [_X, _Y, _Z]] = -grad_q @ rotation.T
+    def distance_gradient(self, full: FloatArray) -> FloatArray:
+        """Gradient [B, F, N + M] of the radial distance of each point to the superquadric of
+        each row, full [B, 14], with respect to the free parameters (on a table, a3's row
+        includes z = a3)."""
+        rotation = rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
+        offset = self.points_t - full[:, [_X, _Y, _Z], None]
+        _, grad = radial_distance_gradient(
+            rotation.swapaxes(1, 2) @ offset, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER]
+        )
+        out = np.empty((len(full), len(PARAMETER_NAMES), offset.shape[2]))
+        out[:, _SHAPE_INDICES] = grad[:, 3:]
+        out[:, [_X, _Y, _Z]] = -(rotation @ grad[:, :3])
         angles = (_YAW,) if self.on_table else (_YAW, _PITCH, _ROLL)
-        for index, d_rotation in zip(angles, _rotation_derivatives(params, rotation),
-                                     strict=False):
-            full[:, index] = np.einsum("ij,ij->i", grad_q, offset @ d_rotation)
+        for index, d_rotation in zip(
+            angles, _rotation_derivatives(full, rotation, len(angles)), strict=True
+        ):
+            moved = d_rotation.swapaxes(1, 2) @ offset
+            out[:, index] = (
+                grad[:, 0] * moved[:, 0] + grad[:, 1] * moved[:, 1] + grad[:, 2] * moved[:, 2]
+            )
         if self.on_table:
-            full[:, _A3] += full[:, _Z]
-        return full[:, self.free]
-
-    def log_inlier_density(self, distance_m: FloatArray, noise_var_m2: float) -> FloatArray:
-        return -1.5 * np.log(2 * np.pi * noise_var_m2) - distance_m**2 / (2 * noise_var_m2)
+            out[:, _A3] += out[:, _Z]
+        return out[:, self.free]
 
     def log_area(self, full: FloatArray) -> FloatArray:
         """log of the approximate surface area of each superquadric: full [B, 14] -> [B]."""
         return np.log(surface_area_m2(full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER]))
 
-    def posterior(self, distance_m: FloatArray, noise_var_m2: float) -> FloatArray:
-        """Inlier probability of eq. 9 per point: [..., N]."""
-        ratio = self.options.outlier_ratio
-        log_outlier = self.log_outlier_density + np.log(ratio / (1 - ratio))
-        return expit(self.log_inlier_density(distance_m, noise_var_m2) - log_outlier)
+    def posterior(self, distance_m: FloatArray, noise_var_m2: FloatArray) -> FloatArray:
+        """Inlier probability of eq. 9 per point, distances [B, N], noise variances [B]:
+        [B, N]."""
+        return _inlier_probability(
+            _log_inlier_density(distance_m, noise_var_m2),
+            self.log_outlier_density,
+            self.options.outlier_ratio,
+        )
 
-    def nll(self, full: FloatArray, noise_var_m2: float) -> FloatArray:
-        """Objective per superquadric, full [B, 14] -> [B]: the negative log-likelihood of the
-        Gaussian-uniform mixture (eq. 4) plus the area term of eq. 7 (inlier count x log A),
-        which keeps a partly seen shape from growing into the unseen space."""
+    def nll(
+        self, full: FloatArray, noise_var_m2: FloatArray, evaluation: _Evaluation | None = None
+    ) -> FloatArray:
+        """Objective per row, full [B, 14] at noise variances [B] -> [B]: the negative
+        log-likelihood of the Gaussian-uniform mixture (eq. 4) plus the area term of eq. 7
+        (inlier count x log A), which keeps a partly seen shape from growing into the unseen
+        space, plus the penalised depth of the excluded points (``evaluation``: that of full,
+        when known)."""
         ratio = self.options.outlier_ratio
-        distance = self.distances(full)
-        terms = np.stack(np.broadcast_arrays(
-            np.log(1 - ratio) + self.log_inlier_density(distance, noise_var_m2),
-            np.log(ratio) + self.log_outlier_density,
-        ))
-        inliers = self.posterior(distance, noise_var_m2).sum(axis=-1)
-        nll = -logsumexp(terms, axis=0).sum(axis=-1) + inliers * self.log_area(full)
-        if self.exclusion is not None:
-            depth = self.exclusion.penetration(full)
-            nll = nll + _EXCLUSION_WEIGHT * (depth**2).sum(axis=-1) / (2 * noise_var_m2)
-        return nll
+        evaluation = self.evaluate(full) if evaluation is None else evaluation
+        log_inlier = _log_inlier_density(evaluation.distance, noise_var_m2)
+        mixture = np.logaddexp(
+            np.log(1 - ratio) + log_inlier, (np.log(ratio) + self.log_outlier_density)[:, None]
+        )
+        inliers = _inlier_probability(log_inlier, self.log_outlier_density, ratio).sum(axis=-1)
+        depth = _EXCLUSION_WEIGHT * (evaluation.depth**2).sum(axis=-1) / (2 * noise_var_m2)
+        return -mixture.sum(axis=-1) + inliers * self.log_area(full) + depth
+
+
+def _log_inlier_density(distance_m: FloatArray, noise_var_m2: FloatArray) -> FloatArray:
+    """log of the Gaussian of the distances [B, N] at each row's noise variance [B]."""
+    var = noise_var_m2[:, None]
+    return -1.5 * np.log(2 * np.pi * var) - distance_m**2 / (2 * var)
+
+
+def _inlier_probability(
+    log_inlier: FloatArray, log_outlier_density: FloatArray, outlier_ratio: float
+) -> FloatArray:
+    """Inlier probability of eq. 9 [B, N] from the log inlier densities [B, N] and each row's
+    log outlier density [B]."""
+    prior = log_outlier_density + np.log(outlier_ratio / (1 - outlier_ratio))
+    return expit(log_inlier - prior[:, None])
 
 
 def rotation_zyx(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:
     """Rz(yaw) Ry(pitch) Rx(roll) for angle arrays [B]. Returns [B, 3, 3]."""
-    cy, sy, cp, sp, cr, sr = (np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch),
-                              np.cos(roll), np.sin(roll))
+    cy, sy, cp, sp, cr, sr = (
+        np.cos(yaw),
+        np.sin(yaw),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(roll),
+        np.sin(roll),
+    )
     rotation = np.empty((*np.shape(yaw), 3, 3))
     rotation[..., 0, 0], rotation[..., 0, 1] = cy * cp, cy * sp * sr - sy * cr
     rotation[..., 0, 2], rotation[..., 1, 0] = cy * sp * cr + sy * sr, sy * cp
@@ -241,12 +350,19 @@ def rotation_zyx(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatA
     return rotation
 
 
-def _rotation_derivatives(params: FloatArray, rotation: FloatArray) -> list[FloatArray]:
-    """d R / d (yaw, pitch, roll) [3 x (3, 3)] of R = Rz Ry Rx (``rotation``) at params [14]."""
-    zero = np.zeros(1)
-    yaw_part = rotation_zyx(params[None, _YAW], zero, zero)[0]
-    tilt = rotation_zyx(zero, params[None, _PITCH], params[None, _ROLL])[0]
-    return [_GENERATOR_Z @ rotation, yaw_part @ _GENERATOR_Y @ tilt, rotation @ _GENERATOR_X]
+def _rotation_derivatives(
+    full: FloatArray, rotation: FloatArray, count: int = 3
+) -> list[FloatArray]:
+    """d R / d (yaw, pitch, roll) [count x (B, 3, 3)] of R = Rz Ry Rx (``rotation`` [B, 3, 3])
+    at full [B, 14]: the first ``count`` of them (1: the yaw's alone)."""
+    if count == 1:
+        return [_GENERATOR_Z @ rotation]
+    zero = np.zeros(len(full))
+    yaw_part = rotation_zyx(full[:, _YAW], zero, zero)
+    tilt = rotation_zyx(zero, full[:, _PITCH], full[:, _ROLL])
+    return [_GENERATOR_Z @ rotation, yaw_part @ _GENERATOR_Y @ tilt, rotation @ _GENERATOR_X][
+        :count
+    ]
 
 
 def _euler_zyx(rotation: FloatArray) -> tuple[float, float, float]:
@@ -267,8 +383,9 @@ def _pose(params: FloatArray) -> FloatArray:
 
 def to_superquadric(params: FloatArray) -> Superquadric:
     """The :class:`Superquadric` of a parameter vector [14]."""
-    return Superquadric(params[_SCALE].copy(), params[_EXPONENTS].copy(), _pose(params),
-                        params[_TAPER].copy())
+    return Superquadric(
+        params[_SCALE].copy(), params[_EXPONENTS].copy(), _pose(params), params[_TAPER].copy()
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -314,8 +431,9 @@ def _initial_params(points_m: FloatArray, on_table: bool) -> FloatArray:
     params[[_X, _Y, _Z]] = centre
     params[[_YAW, _PITCH, _ROLL]] = _euler_zyx(frame)
     if on_table:
-        params[_A3] = max(0.5 * float(np.percentile(points_m[:, 2], _INIT_PERCENTILES[1])),
-                          _MIN_SCALE_M)
+        params[_A3] = max(
+            0.5 * float(np.percentile(points_m[:, 2], _INIT_PERCENTILES[1])), _MIN_SCALE_M
+        )
         params[_Z] = params[_A3]
     return params
 
@@ -324,12 +442,22 @@ def _bounds(points_m: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Lower and upper bounds [14] from the extent of the points."""
     low, high = points_m.min(axis=0), points_m.max(axis=0)
     extent = float(np.max(high - low))
-    lower = np.array([_MIN_SCALE_M] * 3 + [_EXPONENT_BOUNDS[0]] * 2 + [-1.0, 0.0]
-                     + list(low[:2] - extent) + [-np.inf, low[2] - extent, -np.inf, -np.inf]
-                     + [-_SHEAR_BOUND])
-    upper = np.array([extent] * 3 + [_EXPONENT_BOUNDS[1]] * 2 + [1.0, 1.0]
-                     + list(high[:2] + extent) + [np.inf, high[2] + extent, np.inf, np.inf]
-                     + [_SHEAR_BOUND])
+    lower = np.array(
+        [_MIN_SCALE_M] * 3
+        + [_EXPONENT_BOUNDS[0]] * 2
+        + [-1.0, 0.0]
+        + list(low[:2] - extent)
+        + [-np.inf, low[2] - extent, -np.inf, -np.inf]
+        + [-_SHEAR_BOUND]
+    )
+    upper = np.array(
+        [extent] * 3
+        + [_EXPONENT_BOUNDS[1]] * 2
+        + [1.0, 1.0]
+        + list(high[:2] + extent)
+        + [np.inf, high[2] + extent, np.inf, np.inf]
+        + [_SHEAR_BOUND]
+    )
     return lower, upper
 
 
@@ -340,101 +468,167 @@ def _free_indices(options: EMSOptions) -> IntArray:
     return np.array([i for i in range(len(PARAMETER_NAMES)) if i not in fixed], dtype=np.int64)
 
 
-def _make_problem(points_m: FloatArray, options: EMSOptions,
-                  excluded_m: FloatArray | None = None) -> _Problem:
-    """The problem of fitting points [N, 3]; with ``excluded_m`` [M, 3], points that the
-    superquadric must not enclose (the hidden volume of other links): their radial depth
-    inside is penalised."""
-    lower, upper = _bounds(points_m)
-    volume_m3 = max(float(np.prod(np.ptp(points_m, axis=0))), _MIN_VOLUME_M3)
-    free = _free_indices(options)
-    exclusion = (None if excluded_m is None or len(excluded_m) == 0 else
-                 _Problem(excluded_m, free, options.on_table, lower, upper, 0.0, options))
-    return _Problem(points_m, free, options.on_table, lower, upper, -np.log(volume_m3),
-                    options, exclusion)
+def _log_outlier_density(points_m: FloatArray) -> float:
+    """log of the uniform outlier density p0 = 1/V over the bounding box of points [N, 3]."""
+    return float(-np.log(max(float(np.prod(np.ptp(points_m, axis=0))), _MIN_VOLUME_M3)))
+
+
+def _make_problem(
+    points_m: Sequence[FloatArray],
+    options: EMSOptions,
+    excluded_m: Sequence[FloatArray | None] | None = None,
+) -> _Problem:
+    """The problems of fitting each set of points [N, 3] (all N alike); with ``excluded_m``
+    (one [M_k, 3] or None per set), points that the superquadric must not enclose (the hidden
+    volume of other links): their radial depth inside is penalised. The excluded points are
+    padded to one count with points far away (never inside)."""
+    excluded = [np.empty((0, 3)) if e is None else e for e in excluded_m or [None] * len(points_m)]
+    width = max(len(e) for e in excluded)
+    stacked = [
+        np.vstack([p, e, np.full((width - len(e), 3), _FAR_M)])
+        for p, e in zip(points_m, excluded, strict=True)
+    ]
+    lower, upper = zip(*(_bounds(p) for p in points_m), strict=True)
+    return _Problem(
+        np.ascontiguousarray(np.stack(stacked).transpose(0, 2, 1)),
+        len(points_m[0]),
+        _free_indices(options),
+        options.on_table,
+        np.array(lower),
+        np.array(upper),
+        np.array([_log_outlier_density(p) for p in points_m]),
+        options,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
 # EM with switching
 
 
-def _m_step(problem: _Problem, params: FloatArray, weights: FloatArray,
-            noise_var_m2: float) -> FloatArray:
-    """A few bounded Levenberg-Marquardt steps on eq. 7 (times 2 sigma^2): the residuals are
-    sqrt(p_i) * distance_i and one area residual. Returns the new params [14].
+def _m_step(
+    problem: _Problem, state: _State, weights: FloatArray
+) -> tuple[FloatArray, _Evaluation]:
+    """A few bounded Levenberg-Marquardt steps on eq. 7 (times 2 sigma^2) from the state's
+    params, row by row: the residuals are sqrt(p_i) * distance_i (weights p [B, N]), one area
+    residual and the depths of the excluded points. Returns the new params [B, 14] and their
+    evaluation.
 
     The steps solve the small normal equations [F, F] (Marquardt's diagonal scaling) and are
-    clipped to the bounds; unlike an SVD of the [N + 1, F] Jacobian this stays fast when the
-    BLAS would spread small factorisations over several threads."""
+    clipped to the bounds; each row accepts its step or raises its damping on its own."""
     free = problem.free
-    lower, upper = problem.lower[free], problem.upper[free]
-    residuals = _Residuals(problem, params, weights, noise_var_m2)
-    x = np.clip(params[free], lower, upper)
-    value = residuals(x)
-    cost, damping = float(value @ value), _LM_INITIAL_DAMPING
-    jac = residuals.jacobian(x)
-    for _ in range(problem.options.m_step_evaluations):
-        normal = jac.T @ jac
-        scaling = np.maximum(np.diag(normal), _LM_MIN_SCALING)
-        step = np.linalg.solve(normal + damping * np.diag(scaling), -(jac.T @ value))
-        trial = np.clip(x + step, lower, upper)
-        trial_value = residuals(trial)
-        trial_cost = float(trial_value @ trial_value)
-        if trial_cost < cost:
-            x, value, cost = trial, trial_value, trial_cost
-            damping = max(damping / _LM_DAMPING_FACTOR, _LM_MIN_DAMPING)
-            jac = residuals.jacobian(x)
-        else:
-            damping *= _LM_DAMPING_FACTOR
-    return problem.expand(x[None, :], params)[0]
+    lower, upper = problem.lower[:, free], problem.upper[:, free]
+    residuals = _residuals(problem, state.params, weights, state.noise_var_m2)
+    x = np.clip(state.params[:, free], lower, upper)
+    known = np.array_equal(problem.expand(x, state.params), state.params)
+    value, evaluation = residuals(x, state.evaluation if known else None)
+    cost = np.einsum("bk,bk->b", value, value)
+    damping = np.full(len(x), _LM_INITIAL_DAMPING)
+    normal, gradient = residuals.normal_equations(x, evaluation, value)
+    evaluations = problem.options.m_step_evaluations
+    for index in range(evaluations):
+        scaling = np.maximum(np.diagonal(normal, axis1=1, axis2=2), _LM_MIN_SCALING)
+        damped = normal + (damping[:, None] * scaling)[:, :, None] * np.eye(len(free))
+        trial = np.clip(x - np.linalg.solve(damped, gradient[:, :, None])[:, :, 0], lower, upper)
+        trial_value, trial_evaluation = residuals(trial)
+        trial_cost = np.einsum("bk,bk->b", trial_value, trial_value)
+        better = trial_cost < cost
+        rows = np.flatnonzero(better)
+        x, value, cost = (
+            np.where(better[:, None], trial, x),
+            np.where(better[:, None], trial_value, value),
+            np.where(better, trial_cost, cost),
+        )
+        evaluation = evaluation.put(rows, trial_evaluation.take(rows))
+        damping = np.where(
+            better,
+            np.maximum(damping / _LM_DAMPING_FACTOR, _LM_MIN_DAMPING),
+            damping * _LM_DAMPING_FACTOR,
+        )
+        if len(rows) and index + 1 < evaluations:  # the last step's would go unused
+            normal[rows], gradient[rows] = residuals.take(rows).normal_equations(
+                x[rows], evaluation.take(rows), value[rows]
+            )
+    return problem.expand(x, state.params), evaluation
 
 
-class _Residuals:
-    """Weighted distances [N] and the area residual [1] of eq. 7 as a function of the free
-    parameters [F]; the Jacobian [N + 1, F]: analytic for the distances, forward differences
-    for the (cheap) area residual."""
+@dataclass(frozen=True)
+class _Residuals(_Rows):
+    """Per row: weighted distances [N], the depths [M] of the excluded points and the area
+    residual [1] of eq. 7, as a function of the free parameters [F]; their Jacobian is
+    analytic for the distances and depths, forward differences for the (cheap) area residual.
 
-    def __init__(self, problem: _Problem, base: FloatArray, weights: FloatArray,
-                 noise_var_m2: float) -> None:
-        self.problem, self.base = problem, base
-        self.sqrt_w = np.sqrt(weights)
-        # sigma^2 is capped in the area term: while the fit is still coarse (large sigma) the
-        # area term would otherwise shrink the superquadric to nothing.
-        self.area_gain = 2.0 * min(noise_var_m2, _AREA_NOISE_CAP_M**2) * float(weights.sum())
+    base [B, 14]: the full parameters under the free ones; sqrt_w [B, N]: square roots of the
+    weights; area_gain [B]."""
 
-    def batch(self, free_values: FloatArray) -> FloatArray:
-        full = self.problem.expand(free_values, self.base)
-        distance = self.sqrt_w * self.problem.distances(full)
-        out = [distance, self.area_residual(full)[:, None]]
-        if self.problem.exclusion is not None:
-            out.append(np.sqrt(_EXCLUSION_WEIGHT) * self.problem.exclusion.penetration(full))
-        return np.hstack(out)
+    ROWS = ("problem", "base", "sqrt_w", "area_gain")
+    problem: _Problem
+    base: FloatArray
+    sqrt_w: FloatArray
+    area_gain: FloatArray
 
-    def __call__(self, x: FloatArray) -> FloatArray:
-        return self.batch(x[None, :])[0]
+    def __call__(
+        self, x: FloatArray, evaluation: _Evaluation | None = None
+    ) -> tuple[FloatArray, _Evaluation]:
+        """The residuals [B, N + M + 1] (points, excluded points, area) at free values x [B, F]
+        and the evaluation of x (given as ``evaluation`` when already known)."""
+        full = self.problem.expand(x, self.base)
+        evaluation = self.problem.evaluate(full) if evaluation is None else evaluation
+        value = np.concatenate(
+            [
+                self.sqrt_w * evaluation.distance,
+                np.sqrt(_EXCLUSION_WEIGHT) * evaluation.depth,
+                self.area_residual(full, self.area_gain)[:, None],
+            ],
+            axis=1,
+        )
+        return value, evaluation
 
-    def jacobian(self, x: FloatArray) -> FloatArray:
-        full = self.problem.expand(x[None, :], self.base)
-        grad = self.problem.distance_gradient(full[0])
+    def normal_equations(
+        self, x: FloatArray, evaluation: _Evaluation, value: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """J J^T [B, F, F] and J r [B, F] of the Jacobian J [B, F, N + M + 1] at free values
+        x [B, F] (``evaluation`` and the residuals r, ``value``: those of x), the points' part
+        and the area's summed apart. The depth of an excluded point outside is 0 nearby, and so
+        is its gradient."""
+        jac = self.problem.distance_gradient(self.problem.expand(x, self.base))
+        jac *= np.concatenate(
+            [self.sqrt_w, np.sqrt(_EXCLUSION_WEIGHT) * evaluation.inside], axis=1
+        )[:, None, :]
+        area = self._area_jacobian(x)
+        normal = jac @ jac.swapaxes(1, 2) + area[:, :, None] * area[:, None, :]
+        gradient = (jac @ value[:, :-1, None])[:, :, 0] + area * value[:, -1:]
+        return normal, gradient
+
+    def _area_jacobian(self, x: FloatArray) -> FloatArray:
+        """Forward differences [B, F] of the area residual at free values x [B, F]."""
+        rows, free = x.shape
         step = _FD_STEP * np.maximum(np.abs(x), _FD_FLOOR)
-        area = self.area_residual(self.problem.expand(np.vstack([x, x + np.diag(step)]),
-                                                      self.base))
-        rows = [self.sqrt_w[:, None] * grad, (area[1:] - area[0]) / step]
-        exclusion = self.problem.exclusion
-        if exclusion is not None:
-            inside = exclusion.inside(full)[0]
-            rows.append(np.sqrt(_EXCLUSION_WEIGHT) * inside[:, None]
-                        * exclusion.distance_gradient(full[0]))
-        return np.vstack(rows)
+        moved = x[:, None, :] + step[:, :, None] * np.eye(free)
+        values = np.concatenate([x[:, None, :], moved], axis=1).reshape(-1, free)
+        full = self.problem.expand(values, np.repeat(self.base, free + 1, axis=0))
+        area = self.area_residual(full, np.repeat(self.area_gain, free + 1)).reshape(rows, -1)
+        return (area[:, 1:] - area[:, :1]) / step
 
-    def area_residual(self, full: FloatArray) -> FloatArray:
-        """sqrt(gain (log A - floor)) per superquadric: full [B, 14] -> [B]."""
-        return np.sqrt(self.area_gain * (self.problem.log_area(full) - _LOG_AREA_FLOOR))
+    def area_residual(self, full: FloatArray, gain: FloatArray) -> FloatArray:
+        """sqrt(gain (log A - floor)) per superquadric: full [B, 14], gain [B] -> [B]."""
+        return np.sqrt(gain * (self.problem.log_area(full) - _LOG_AREA_FLOOR))
 
 
-def _noise_var(problem: _Problem, distance_m: FloatArray, weights: FloatArray) -> float:
-    var = float(np.sum(weights * distance_m**2) / (3 * max(float(np.sum(weights)), 1e-9)))
-    return max(var, problem.options.min_noise_m**2)
+def _residuals(
+    problem: _Problem, base: FloatArray, weights: FloatArray, noise_var_m2: FloatArray
+) -> _Residuals:
+    """The residuals of each row about base [B, 14] with weights [B, N] and noise variances
+    [B]."""
+    # sigma^2 is capped in the area term: while the fit is still coarse (large sigma) the
+    # area term would otherwise shrink the superquadric to nothing.
+    area_gain = 2.0 * np.minimum(noise_var_m2, _AREA_NOISE_CAP_M**2) * weights.sum(axis=1)
+    return _Residuals(problem, base, np.sqrt(weights), area_gain)
+
+
+def _noise_var(problem: _Problem, distance_m: FloatArray, weights: FloatArray) -> FloatArray:
+    """The noise variance [B] of eq. 8 from the distances and weights [B, N]."""
+    var = (weights * distance_m**2).sum(axis=1) / (3 * np.maximum(weights.sum(axis=1), 1e-9))
+    return np.maximum(var, problem.options.min_noise_m**2)
 
 
 def _candidates(params: FloatArray, options: EMSOptions) -> FloatArray:
@@ -476,8 +670,11 @@ def _dual(params: FloatArray) -> FloatArray:
     """The 45-degree dual of a near-square cross-section (eps2 -> 2 - eps2, Liu et al.)."""
     eps2 = params[4]
     side = min(params[0], params[1])
-    gain = ((1 - np.sqrt(2)) * eps2 + np.sqrt(2) if eps2 <= 1
-            else (np.sqrt(2) / 2 - 1) * eps2 + 2 - np.sqrt(2) / 2)
+    gain = (
+        (1 - np.sqrt(2)) * eps2 + np.sqrt(2)
+        if eps2 <= 1
+        else (np.sqrt(2) / 2 - 1) * eps2 + 2 - np.sqrt(2) / 2
+    )
     out = params.copy()
     out[[0, 1]] = gain * side
     out[4] = 2 - eps2
@@ -485,76 +682,130 @@ def _dual(params: FloatArray) -> FloatArray:
     return out
 
 
-@dataclass
-class _State:
+@dataclass(frozen=True)
+class _State(_Rows):
+    """EM's current fit of each row: params [B, 14], noise variances [B], objectives [B] and
+    the evaluation of the params."""
+
+    ROWS = ("params", "noise_var_m2", "nll", "evaluation")
     params: FloatArray
-    noise_var_m2: float
-    nll: float
+    noise_var_m2: FloatArray
+    nll: FloatArray
+    evaluation: _Evaluation
+
+
+def _state(
+    problem: _Problem,
+    params: FloatArray,
+    noise_var_m2: FloatArray,
+    evaluation: _Evaluation | None = None,
+) -> _State:
+    """The states of params [B, 14] at noise variances [B] (``evaluation``: the params', if
+    known)."""
+    evaluation = problem.evaluate(params) if evaluation is None else evaluation
+    return _State(params, noise_var_m2, problem.nll(params, noise_var_m2, evaluation), evaluation)
 
 
 def _em_iteration(problem: _Problem, state: _State) -> _State:
-    weights = problem.posterior(problem.distances(state.params[None])[0], state.noise_var_m2)
-    params = _m_step(problem, state.params, weights, state.noise_var_m2)
-    noise_var = _noise_var(problem, problem.distances(params[None])[0], weights)
-    return _State(params, noise_var, float(problem.nll(params[None], noise_var)[0]))
+    weights = problem.posterior(state.evaluation.distance, state.noise_var_m2)
+    params, evaluation = _m_step(problem, state, weights)
+    return _state(problem, params, _noise_var(problem, evaluation.distance, weights), evaluation)
 
 
-def _switch(problem: _Problem, state: _State) -> _State | None:
-    """The S-step: of the ``_SWITCH_TRIALS`` most likely candidates, the first that improves
-    after one EM iteration, or None."""
-    candidates = _candidates(state.params, problem.options)
-    candidates = np.clip(candidates, problem.lower, problem.upper)
+def _switch(problem: _Problem, state: _State) -> tuple[BoolArray, _State]:
+    """The S-step of each row: of its ``_SWITCH_TRIALS`` most likely candidates, the first
+    that improves after one EM iteration. Returns whether one did [B] and, for those rows,
+    the switched states."""
+    candidates = [_candidates(params, problem.options) for params in state.params]
+    owner = np.repeat(np.arange(len(candidates)), [len(c) for c in candidates])
+    problems = problem.take(owner)
+    params = np.clip(np.concatenate(candidates), problems.lower, problems.upper)
     if problem.on_table:
-        candidates[:, _Z] = candidates[:, _A3]
-    nll = problem.nll(candidates, state.noise_var_m2)
-    for index in np.argsort(nll)[:_SWITCH_TRIALS]:
-        trial = _em_iteration(problem, _State(candidates[index], state.noise_var_m2, nll[index]))
-        if trial.nll < state.nll - problem.options.tolerance_nats * len(problem.points_m):
-            logger.debug("EMS switched to candidate %d (nll %.1f -> %.1f)", index, state.nll,
-                         trial.nll)
-            return trial
-    return None
+        params[:, _Z] = params[:, _A3]
+    noise_var = state.noise_var_m2[owner]
+    evaluation = problems.evaluate(params)
+    nll = problems.nll(params, noise_var, evaluation)
+    picks = np.concatenate(
+        [
+            np.flatnonzero(owner == row)[np.argsort(nll[owner == row])][:_SWITCH_TRIALS]
+            for row in range(len(candidates))
+        ]
+    )
+    trials = _em_iteration(
+        problems.take(picks),
+        _State(params[picks], noise_var[picks], nll[picks], evaluation.take(picks)),
+    )
+    tolerance = problem.options.tolerance_nats * problem.count
+    improved = trials.nll < state.nll[owner[picks]] - tolerance
+    chosen = [
+        next((k for k in np.flatnonzero(owner[picks] == row) if improved[k]), None)
+        for row in range(len(candidates))
+    ]
+    switched = np.array([k is not None for k in chosen])
+    for row, k in enumerate(chosen):
+        if k is not None:
+            logger.debug(
+                "EMS fit %d switched (nll %.1f -> %.1f)", row, state.nll[row], trials.nll[k]
+            )
+    return switched, trials.take(np.array([k for k in chosen if k is not None], dtype=np.int64))
 
 
-def _run_ems(problem: _Problem, params: FloatArray, max_iterations: int,
-             max_switches: int, noise_var_m2: float | None = None) -> _State:
-    """EM from params [14] until the likelihood stops improving, with up to ``max_switches``
-    S-steps. The noise variance starts at ``noise_var_m2`` (a coarser fit's) or, without it,
-    from the closest 1 - w0 of the points (w0 the outlier ratio): counting the outliers too
-    would start EM so loose that it spreads the shape into the unseen side of a partial
-    view."""
-    if noise_var_m2 is None:
-        distance = problem.distances(params[None])[0]
-        inlier = distance <= np.quantile(distance, 1 - problem.options.outlier_ratio)
-        noise_var_m2 = _noise_var(problem, distance, inlier)
-    state = _State(params, noise_var_m2, float(problem.nll(params[None], noise_var_m2)[0]))
-    switches = 0
-    tolerance = problem.options.tolerance_nats * len(problem.points_m)
+def _initial_noise_var(problem: _Problem, distance_m: FloatArray) -> FloatArray:
+    """The noise variance [B] of the closest 1 - w0 of the points (w0 the outlier ratio) at
+    their distances [B, N]: counting the outliers too would start EM so loose that it spreads
+    the shape into the unseen side of a partial view."""
+    quantile = np.quantile(distance_m, 1 - problem.options.outlier_ratio, axis=1)
+    return _noise_var(problem, distance_m, distance_m <= quantile[:, None])
+
+
+def _run_ems(
+    problem: _Problem,
+    params: FloatArray,
+    max_iterations: int,
+    max_switches: IntArray,
+    noise_var_m2: FloatArray,
+    evaluation: _Evaluation | None = None,
+) -> _State:
+    """EM from params [B, 14] at noise variances [B] (``evaluation``: that of the params, if
+    known), each row until its likelihood stops improving, with up to ``max_switches`` [B]
+    S-steps; the rows still improving iterate together."""
+    state = _state(problem, params, noise_var_m2, evaluation)
+    switches = np.zeros(len(params), dtype=np.int64)
+    active = np.ones(len(params), dtype=bool)
+    tolerance = problem.options.tolerance_nats * problem.count
     for _ in range(max_iterations):
-        new_state = _em_iteration(problem, state)
-        improved = state.nll - new_state.nll > tolerance
-        state = new_state if new_state.nll < state.nll else state
-        if improved:
-            continue
-        if switches >= max_switches:
+        rows = np.flatnonzero(active)
+        current = state.take(rows)
+        new = _em_iteration(problem.take(rows), current)
+        improved = current.nll - new.nll > tolerance
+        better = np.flatnonzero(new.nll < current.nll)
+        state = state.put(rows[better], new.take(better))
+        stuck = rows[~improved]
+        active[stuck[switches[stuck] >= max_switches[stuck]]] = False
+        stuck = stuck[switches[stuck] < max_switches[stuck]]
+        if len(stuck):
+            switches[stuck] += 1
+            switched, switched_state = _switch(problem.take(stuck), state.take(stuck))
+            state = state.put(stuck[switched], switched_state)
+            active[stuck[~switched]] = False
+        if not active.any():
             break
-        switches += 1
-        switched = _switch(problem, state)
-        if switched is None:
-            break
-        state = switched
     return state
 
 
-def _parameter_covariance(problem: _Problem, params: FloatArray, weights: FloatArray,
-                          noise_var_m2: float) -> FloatArray:
-    """Covariance [14, 14] from the Jacobian at the optimum, (J^T J)^-1 s^2; zero rows and
-    columns for fixed parameters (on a table z = a3, so z copies a3's)."""
-    residuals = _Residuals(problem, params, weights, noise_var_m2)
-    jac = residuals.jacobian(params[problem.free])
-    residual = residuals(params[problem.free])[:-1]
+def _parameter_covariance(
+    problem: _Problem, params: FloatArray, weights: FloatArray, noise_var_m2: float
+) -> FloatArray:
+    """Covariance [14, 14] of params [14] fitted to the points of a one-row problem with
+    weights [N], from the Jacobian at the optimum, (J^T J)^-1 s^2; zero rows and columns for
+    fixed parameters (on a table z = a3, so z copies a3's)."""
+    residuals = _residuals(problem, params[None], weights[None], np.array([noise_var_m2]))
+    x = params[None, problem.free]
+    value, evaluation = residuals(x)
+    normal, _ = residuals.normal_equations(x, evaluation, value)
+    residual = value[0, : problem.count]
     dof = max(float(weights.sum()) - len(problem.free), 1.0)
-    free_cov = np.linalg.pinv(jac.T @ jac) * float(residual @ residual) / dof
+    free_cov = np.linalg.pinv(normal[0]) * float(residual @ residual) / dof
     cov = np.zeros((len(PARAMETER_NAMES), len(PARAMETER_NAMES)))
     cov[np.ix_(problem.free, problem.free)] = 0.5 * (free_cov + free_cov.T)
     if problem.on_table:
@@ -577,9 +828,12 @@ def _canonical(params: FloatArray, options: EMSOptions) -> FloatArray:
     return out
 
 
-def fit_superquadric(points_m: FloatArray, options: EMSOptions,
-                     excluded_m: FloatArray | None = None,
-                     initial: EMSResult | None = None) -> EMSResult:
+def fit_superquadric(
+    points_m: FloatArray,
+    options: EMSOptions,
+    excluded_m: FloatArray | None = None,
+    initial: EMSResult | None = None,
+) -> EMSResult:
     """Fit one (tapered) superquadric to points [N, 3] (N >= 10, finite) by EMS: from the
     points' extent, or warm-started from ``initial`` (its parameters and noise, no switching).
 
@@ -587,25 +841,107 @@ def fit_superquadric(points_m: FloatArray, options: EMSOptions,
     ``_FINE_ITERATIONS`` EM iterations refine it on ``max_fit_points`` (a superset); the
     inlier probabilities and the uncertainty use all points.
     """
-    order = np.random.default_rng(0).permutation(len(points_m))
-    subset = points_m[order[: options.max_fit_points]]
-    coarse = subset[: min(_COARSE_FIT_POINTS, len(subset))]
+    return _fit_superquadrics([points_m], options, [excluded_m], [initial])[0]
+
+
+def _fit_superquadrics(
+    points_m: Sequence[FloatArray],
+    options: EMSOptions,
+    excluded_m: Sequence[FloatArray | None],
+    initial: Sequence[EMSResult | None],
+) -> list[EMSResult]:
+    """:func:`fit_superquadric` of each set of points [N_k, 3] (with its excluded points and
+    initial fit, or None); the fits whose subsets have the same size run as one batch."""
+    groups: dict[int, list[int]] = {}
+    for k, points in enumerate(points_m):
+        groups.setdefault(min(len(points), options.max_fit_points), []).append(k)
+    results: dict[int, EMSResult] = {}
+    for members in groups.values():
+        fits = _fit_batch(
+            [points_m[k] for k in members],
+            options,
+            [excluded_m[k] for k in members],
+            [initial[k] for k in members],
+        )
+        results.update(zip(members, fits, strict=True))
+    return [results[k] for k in range(len(points_m))]
+
+
+def _fit_batch(
+    points_m: list[FloatArray],
+    options: EMSOptions,
+    excluded_m: list[FloatArray | None],
+    initial: list[EMSResult | None],
+) -> list[EMSResult]:
+    """:func:`fit_superquadric` of sets of points whose subsets have one size, as one batch
+    (cold fits switch, warm-started ones do not)."""
+    subsets = [
+        p[np.random.default_rng(0).permutation(len(p))[: options.max_fit_points]] for p in points_m
+    ]
+    coarse = [s[: min(_COARSE_FIT_POINTS, len(s))] for s in subsets]
     problem = _make_problem(coarse, options, excluded_m)
-    if initial is None:
-        state = _run_ems(problem, _initial_params(subset, options.on_table),
-                         options.max_iterations, options.max_switches)
-    else:
-        state = _run_ems(problem, initial.params, options.max_iterations, 0,
-                         initial.noise_m**2)
-    if len(subset) > len(coarse):
-        state = _run_ems(_make_problem(subset, options, excluded_m), state.params,
-                         _FINE_ITERATIONS, 0, state.noise_var_m2)
-    params = _canonical(state.params, options)
-    problem = _make_problem(points_m, options)
-    weights = problem.posterior(problem.distances(params[None])[0], state.noise_var_m2)
-    cov = _parameter_covariance(problem, params, weights, state.noise_var_m2)
-    return EMSResult(to_superquadric(params), params, np.sqrt(np.clip(np.diag(cov), 0.0, None)),
-                     cov, weights, float(np.sqrt(state.noise_var_m2)), state.nll)
+    cold = np.array([start is None for start in initial])
+    params = np.array(
+        [
+            _initial_params(s, options.on_table) if start is None else start.params
+            for s, start in zip(subsets, initial, strict=True)
+        ]
+    )
+    evaluation = problem.evaluate(params)
+    noise_var = np.array([np.nan if start is None else start.noise_m**2 for start in initial])
+    if cold.any():
+        noise_var[cold] = _initial_noise_var(
+            problem.take(np.flatnonzero(cold)), evaluation.distance[cold]
+        )
+    state = _run_ems(
+        problem,
+        params,
+        options.max_iterations,
+        np.where(cold, options.max_switches, 0),
+        noise_var,
+        evaluation,
+    )
+    if len(subsets[0]) > len(coarse[0]):
+        state = _run_ems(
+            _make_problem(subsets, options, excluded_m),
+            state.params,
+            _FINE_ITERATIONS,
+            np.zeros(len(cold), dtype=np.int64),
+            state.noise_var_m2,
+        )
+    return [
+        _result(points, state.params[k], float(state.noise_var_m2[k]), float(state.nll[k]), options)
+        for k, points in enumerate(points_m)
+    ]
+
+
+def _result(
+    points_m: FloatArray, params: FloatArray, noise_var_m2: float, nll: float, options: EMSOptions
+) -> EMSResult:
+    """The fit of params [14] to points [N, 3], with the inlier probabilities of all."""
+    params = _canonical(params, options)
+    superquadric, noise_m = to_superquadric(params), float(np.sqrt(noise_var_m2))
+    return EMSResult(
+        superquadric,
+        params,
+        noise_m=noise_m,
+        nll=nll,
+        fit_points_m=points_m,
+        options=options,
+        **_cloud_fields(superquadric, noise_m, points_m, options),
+    )
+
+
+def _cloud_fields(
+    superquadric: Superquadric, noise_m: float, points_m: FloatArray, options: EMSOptions
+) -> dict[str, FloatArray]:
+    """The fields of an :class:`EMSResult` that refer to its cloud, points [N, 3]."""
+    distance = distance_to_surface_m(superquadric, points_m)
+    log_inlier = _log_inlier_density(distance[None], np.array([noise_m**2]))
+    probability = _inlier_probability(
+        log_inlier, np.array([_log_outlier_density(points_m)]), options.outlier_ratio
+    )[0]
+    return {"inlier_probability": probability, "cloud_m": points_m, "distance_m": distance}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -616,15 +952,21 @@ def largest_cluster(points_m: FloatArray, radius_m: float) -> IntArray:
     """Indices [K] of the largest group of points chained by gaps <= radius_m (DBSCAN with
     min_samples = 1: single-linkage clusters)."""
     pairs = cKDTree(points_m).query_pairs(radius_m, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
-                       shape=(len(points_m), len(points_m)))
+    graph = coo_matrix(
+        (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points_m), len(points_m))
+    )
     _, labels = connected_components(graph, directed=False)
     return np.flatnonzero(labels == np.bincount(labels).argmax())
 
 
-def fit_links(points_m: FloatArray, options: EMSOptions, max_links: int,
-              outlier_threshold_points: int, cluster_radius_m: float,
-              previous: list[EMSResult] | None = None) -> list[EMSResult]:
+def fit_links(
+    points_m: FloatArray,
+    options: EMSOptions,
+    max_links: int,
+    outlier_threshold_points: int,
+    cluster_radius_m: float,
+    previous: list[EMSResult] | None = None,
+) -> list[EMSResult]:
     """Fit superquadrics to points [N, 3], one more at a time while the model selection of
     :func:`_evidence_gain` prefers it (at most ``max_links``).
 
@@ -636,45 +978,70 @@ def fit_links(points_m: FloatArray, options: EMSOptions, max_links: int,
     Each step tries, in turn, to split the largest link where the view from above shows a
     seam (:func:`_split_labels`) and to add a link on the largest cluster of unexplained points
     (III-B3, when at least ``outlier_threshold_points``); the links of a proposal are fitted
-    jointly (:func:`_fit_jointly`) and kept only when they explain the points better.
+    jointly (:func:`_fit_jointly`) and kept only when they explain the points better. The
+    last view's links are refitted in one batch with the first, single link.
     """
-    links = [fit_superquadric(points_m, options)]
+    if max_links == 1:
+        return [fit_superquadric(points_m, options)]
+    dense = _dense_mask(points_m)
+    link_points: list[FloatArray] = []
+    link_excluded: list[FloatArray | None] = []
+    starts: list[EMSResult] = []
+    if previous is not None and 1 < len(previous) <= max_links:
+        sets = _link_sets(points_m, dense, _assign(points_m, previous), options)
+        if sets is not None:
+            (link_points, link_excluded), starts = sets, previous
+    # The single link and the last view's links refitted (each from where it was): one batch.
+    fits = _fit_superquadrics(
+        [points_m, *link_points], options, [None, *link_excluded], [None, *starts]
+    )
+    links, again = fits[:1], [_over_all_points(fit, points_m, options) for fit in fits[1:]]
     while len(links) < max_links:
-        proposal = _best_proposal(points_m, links, options, outlier_threshold_points,
-                                  cluster_radius_m)
+        proposal = _best_proposal(
+            points_m, dense, links, options, outlier_threshold_points, cluster_radius_m
+        )
         if proposal is None:
             break
         links = proposal
-    if previous is not None and 1 < len(previous) <= max_links:
-        again = _fit_jointly(points_m, _assign(points_m, previous), options, 1, previous)
-        if again is not None and _evidence_gain(points_m, links, again, options) > 0:
-            return again
+    if again and _evidence_gain(points_m, links, again, options) > 0:
+        return again
     return links
 
 
-def _best_proposal(points_m: FloatArray, links: list[EMSResult], options: EMSOptions,
-                   outlier_threshold_points: int,
-                   cluster_radius_m: float) -> list[EMSResult] | None:
+def _best_proposal(
+    points_m: FloatArray,
+    dense: NDArray[np.bool_],
+    links: list[EMSResult],
+    options: EMSOptions,
+    outlier_threshold_points: int,
+    cluster_radius_m: float,
+) -> list[EMSResult] | None:
     """The first proposal of one more link whose evidence gain exceeds its threshold, both
-    fitted from the proposal's labels and refitted jointly; None when none is accepted."""
-    for labels, min_gain in _proposals(points_m, links, options, outlier_threshold_points,
-                                       cluster_radius_m):
+    fitted from the proposal's labels and refitted jointly (``dense``: :func:`_dense_mask` of
+    the points [N]); None when none is accepted."""
+    for labels, min_gain in _proposals(
+        points_m, links, options, outlier_threshold_points, cluster_radius_m
+    ):
         threshold = min_gain * len(points_m)
-        proposal = _fit_jointly(points_m, labels, options, 1)
+        proposal = _fit_jointly(points_m, dense, labels, options, 1)
         if proposal is None or _evidence_gain(points_m, links, proposal, options) <= threshold:
             continue
-        refined = _fit_jointly(points_m, _assign(points_m, proposal), options, _REFIT_ROUNDS,
-                               proposal)
-        if refined is not None and (_evidence_gain(points_m, links, refined, options)
-                                    > threshold):
+        refined = _fit_jointly(
+            points_m, dense, _assign(points_m, proposal), options, _REFIT_ROUNDS, proposal
+        )
+        if refined is not None and (_evidence_gain(points_m, links, refined, options) > threshold):
             logger.debug("EMS: %d links accepted", len(refined))
             return refined
     return None
 
 
-def _proposals(points_m: FloatArray, links: list[EMSResult], options: EMSOptions,
-               outlier_threshold_points: int,
-               cluster_radius_m: float) -> list[tuple[IntArray, float]]:
+def _proposals(
+    points_m: FloatArray,
+    links: list[EMSResult],
+    options: EMSOptions,
+    outlier_threshold_points: int,
+    cluster_radius_m: float,
+) -> list[tuple[IntArray, float]]:
     """The models with one more link to try: point labels [N] (link index per point) and the
     evidence gain per point that the model must exceed. A gap seen from above is itself
     evidence of two parts, so there any BIC gain will do; a step in height or an outlier
@@ -682,8 +1049,10 @@ def _proposals(points_m: FloatArray, links: list[EMSResult], options: EMSOptions
     imperfect fit of one part leaves such structure too."""
     labels = _assign(points_m, links)
     largest = int(np.bincount(labels).argmax())
-    proposals = [(np.where(mask, len(links), labels), 0.0 if at_gap else _CLEAR_GAIN_NATS)
-                 for mask, at_gap in _split_masks(points_m, labels == largest)]
+    proposals = [
+        (np.where(mask, len(links), labels), 0.0 if at_gap else _CLEAR_GAIN_NATS)
+        for mask, at_gap in _split_masks(points_m, labels == largest)
+    ]
     explained = np.max([link.inlier_probability for link in links], axis=0) >= 0.5
     unexplained = np.flatnonzero(~explained)
     if len(unexplained) >= outlier_threshold_points:
@@ -704,8 +1073,9 @@ def _split_masks(points_m: FloatArray, own: FloatArray) -> list[tuple[FloatArray
     major = np.linalg.eigh(footprint.T @ footprint)[1][:, -1]
     direction, cut, at_gap = major, _gap_cut(footprint @ major), True
     if cut is None:
-        angles = np.arctan2(major[1], major[0]) + np.linspace(0, np.pi, _STEP_DIRECTIONS,
-                                                                endpoint=False)
+        angles = np.arctan2(major[1], major[0]) + np.linspace(
+            0, np.pi, _STEP_DIRECTIONS, endpoint=False
+        )
         directions = np.column_stack([np.cos(angles), np.sin(angles)])
         steps = [_step_cut(footprint @ d, points_m[own, 2]) for d in directions]
         best = int(np.argmax([gain for gain, _ in steps]))
@@ -752,17 +1122,30 @@ def _step_cut(along_m: FloatArray, height_m: FloatArray) -> tuple[float, float]:
     is 0 where the cut falls outside the middle of the span or the levels differ by less
     than ``_STEP_MIN_M``."""
     top, position = _top_profile(along_m, height_m)
-    cuts = [c for c in range(1, len(top))
-            if _middle_bins(np.array([position[0], position[c], position[-1]]))[1]]
-    if not cuts:
+    if len(top) == 0:
         return 0.0, 0.0
-    cost = [np.abs(top[:c] - np.median(top[:c])).sum() + np.abs(top[c:] - np.median(top[c:])).sum()
-            for c in cuts]
-    best = cuts[int(np.argmin(cost))]
-    if abs(float(np.median(top[:best]) - np.median(top[best:]))) < _STEP_MIN_M:
+    cuts = np.flatnonzero(_middle_bins(position)[1:]) + 1
+    if len(cuts) == 0:
         return 0.0, 0.0
-    gain = (float(np.abs(top - np.median(top)).sum()) - min(cost)) / len(top)
-    return gain, float(position[best])
+    before = np.arange(len(top)) < cuts[:, None]
+    left, right = _masked_median(top, before), _masked_median(top, ~before)
+    cost = np.where(before, np.abs(top - left[:, None]), 0.0).sum(axis=1) + np.where(
+        before, 0.0, np.abs(top - right[:, None])
+    ).sum(axis=1)
+    best = int(np.argmin(cost))
+    if abs(float(left[best] - right[best])) < _STEP_MIN_M:
+        return 0.0, 0.0
+    gain = (float(np.abs(top - np.median(top)).sum()) - float(cost[best])) / len(top)
+    return gain, float(position[cuts[best]])
+
+
+def _masked_median(values: FloatArray, mask: BoolArray) -> FloatArray:
+    """The median of the values [B] where each row of ``mask`` [C, B] holds (none empty):
+    [C]."""
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
+    count = mask.sum(axis=1)[:, None]
+    middle = np.take_along_axis(ordered, np.hstack([(count - 1) // 2, count // 2]), axis=1)
+    return 0.5 * (middle[:, 0] + middle[:, 1])
 
 
 def _top_profile(along_m: FloatArray, height_m: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -782,7 +1165,7 @@ def _top_profile(along_m: FloatArray, height_m: FloatArray) -> tuple[FloatArray,
 def _link_log_density(points_m: FloatArray, links: list[EMSResult]) -> FloatArray:
     """log of each link's surface density at each point [K, N]: a Gaussian of the radial
     distance (the link's noise) over the surface, uniform on its area."""
-    distance = np.array([distance_to_surface_m(link.superquadric, points_m) for link in links])
+    distance = np.array([link.distance_to(points_m) for link in links])
     var = np.array([link.noise_m**2 for link in links])[:, None]
     params = np.array([link.params for link in links])
     area = surface_area_m2(params[:, _SCALE], params[:, _EXPONENTS], params[:, _TAPER])
@@ -800,41 +1183,66 @@ def _surface_nll(points_m: FloatArray, links: list[EMSResult], options: EMSOptio
     log_density = _link_log_density(points_m, links)
     share = np.bincount(np.argmax(log_density, axis=0), minlength=len(links)) / len(points_m)
     ratio = options.outlier_ratio
-    inlier = logsumexp(np.log(1 - ratio) + np.log(np.maximum(share, 1e-9))[:, None]
-                       + log_density, axis=0)
-    outlier = np.log(ratio) + _make_problem(points_m, options).log_outlier_density
+    inlier = logsumexp(
+        np.log(1 - ratio) + np.log(np.maximum(share, 1e-9))[:, None] + log_density, axis=0
+    )
+    outlier = np.log(ratio) + _log_outlier_density(points_m)
     return -float(np.logaddexp(inlier, outlier).sum())
 
 
-def _evidence_gain(points_m: FloatArray, links: list[EMSResult], proposal: list[EMSResult],
-                   options: EMSOptions) -> float:
+def _evidence_gain(
+    points_m: FloatArray, links: list[EMSResult], proposal: list[EMSResult], options: EMSOptions
+) -> float:
     """BIC difference (nats) in favour of ``proposal`` over ``links``: the drop of
     :func:`_surface_nll` less half a log(N) per extra free parameter."""
     extra = (len(proposal) - len(links)) * (len(_free_indices(options)) + 1)
-    return (_surface_nll(points_m, links, options) - _surface_nll(points_m, proposal, options)
-            - 0.5 * extra * np.log(len(points_m)))
+    return (
+        _surface_nll(points_m, links, options)
+        - _surface_nll(points_m, proposal, options)
+        - 0.5 * extra * np.log(len(points_m))
+    )
 
 
-def _fit_jointly(points_m: FloatArray, labels: IntArray, options: EMSOptions, rounds: int,
-                 initial: list[EMSResult] | None = None) -> list[EMSResult] | None:
+def _fit_jointly(
+    points_m: FloatArray,
+    dense: NDArray[np.bool_],
+    labels: IntArray,
+    options: EMSOptions,
+    rounds: int,
+    initial: list[EMSResult] | None = None,
+) -> list[EMSResult] | None:
     """Links fitted to the points [N, 3] of each label [N] (0 .. K-1), then for ``rounds`` - 1
     more rounds each point is given to the link of highest surface density and the links are
     refitted, each from its previous fit (the first round from ``initial`` when given, one
-    link per label); None when a link is left with fewer than ``_MIN_LINK_POINTS``."""
+    link per label); None when a link is left with fewer than ``_MIN_LINK_POINTS``. The other
+    links' hidden volume comes from their dense points (``dense``: :func:`_dense_mask` [N])."""
     links: list[EMSResult] | None = initial
-    dense = _dense_mask(points_m)
     for round_index in range(rounds):
         if round_index:
             labels = _assign(points_m, links or [])
-        counts = np.bincount(labels, minlength=int(labels.max()) + 1)
-        if counts.min() < _MIN_LINK_POINTS:
+        sets = _link_sets(points_m, dense, labels, options)
+        if sets is None:
             return None
-        links = [_over_all_points(fit_superquadric(
-            points_m[labels == k], options,
-            _hidden_volume(points_m[(labels != k) & dense], options),
-            None if links is None else links[k]), points_m, options)
-            for k in range(len(counts))]
+        fits = _fit_superquadrics(
+            sets[0], options, sets[1], [None] * len(sets[0]) if links is None else links
+        )
+        links = [_over_all_points(fit, points_m, options) for fit in fits]
     return links
+
+
+def _link_sets(
+    points_m: FloatArray, dense: NDArray[np.bool_], labels: IntArray, options: EMSOptions
+) -> tuple[list[FloatArray], list[FloatArray | None]] | None:
+    """The points [N_k, 3] of each label [N] (0 .. K-1) and the hidden volume of the other
+    links (:func:`_hidden_volume` of their dense points, ``dense``: :func:`_dense_mask` [N]);
+    None when a link has fewer than ``_MIN_LINK_POINTS``."""
+    counts = np.bincount(labels, minlength=int(labels.max()) + 1)
+    if counts.min() < _MIN_LINK_POINTS:
+        return None
+    return (
+        [points_m[labels == k] for k in range(len(counts))],
+        [_hidden_volume(points_m[(labels != k) & dense], options) for k in range(len(counts))],
+    )
 
 
 def _hidden_volume(dense_m: FloatArray, options: EMSOptions) -> FloatArray | None:
@@ -852,9 +1260,7 @@ def _hidden_volume(dense_m: FloatArray, options: EMSOptions) -> FloatArray | Non
 
 def _over_all_points(link: EMSResult, points_m: FloatArray, options: EMSOptions) -> EMSResult:
     """``link`` with its inlier probabilities evaluated for all points [N, 3]."""
-    distance = distance_to_surface_m(link.superquadric, points_m)
-    probability = _make_problem(points_m, options).posterior(distance, link.noise_m**2)
-    return replace(link, inlier_probability=probability)
+    return replace(link, **_cloud_fields(link.superquadric, link.noise_m, points_m, options))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -883,16 +1289,21 @@ class EMSEstimator(Component):
         max_fit_points: int = Field(1000, ge=10, description="EM runs on a subset this big")
         max_links: int = Field(1, ge=1, description="superquadrics to fit at most (III-B3)")
         outlier_threshold_points: int = Field(
-            100, ge=1, description="O_th: stop adding links below this many unexplained points")
+            100, ge=1, description="O_th: stop adding links below this many unexplained points"
+        )
         cluster_radius_m: float = Field(0.01, gt=0, description="DBSCAN radius for outliers")
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
         super().__init__(config, ctx)
         self.config: EMSEstimator.Config = config
         self.options = EMSOptions(
-            outlier_ratio=config.outlier_ratio, max_iterations=config.max_iterations,
-            max_switches=config.max_switches, m_step_evaluations=config.m_step_evaluations,
-            min_noise_m=config.min_noise_m, taper=config.taper, shear=config.shear,
+            outlier_ratio=config.outlier_ratio,
+            max_iterations=config.max_iterations,
+            max_switches=config.max_switches,
+            m_step_evaluations=config.m_step_evaluations,
+            min_noise_m=config.min_noise_m,
+            taper=config.taper,
+            shear=config.shear,
             on_table=config.on_table,
             max_fit_points=config.max_fit_points,
         )
@@ -901,13 +1312,19 @@ class EMSEstimator(Component):
     def fit(self, cloud: PointCloud) -> ShapeEstimate:
         """Fit the object in ``cloud`` (world frame, table at z = 0 may be included)."""
         points = self._object_points(cloud)
-        links = fit_links(points, self.options, self.config.max_links,
-                          self.config.outlier_threshold_points, self.config.cluster_radius_m,
-                          self._previous_links)
+        links = fit_links(
+            points,
+            self.options,
+            self.config.max_links,
+            self.config.outlier_threshold_points,
+            self.config.cluster_radius_m,
+            self._previous_links,
+        )
         self._previous_links = links
         inlier = np.max([link.inlier_probability for link in links], axis=0) >= 0.5
-        logger.info("EMS: %d link(s) from %d points, %d inliers", len(links), len(points),
-                    int(inlier.sum()))
+        logger.info(
+            "EMS: %d link(s) from %d points, %d inliers", len(links), len(points), int(inlier.sum())
+        )
         return ShapeEstimate(
             links=tuple(link.superquadric for link in links),
             initial_poses=np.array([link.params[[_X, _Y, _YAW]] for link in links]),
@@ -920,11 +1337,15 @@ class EMSEstimator(Component):
         """The finite points above the table clearance: [N, 3]; DataError when too few."""
         points = np.asarray(cloud.points_m, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-            raise DataError(f"shape.ems: the point cloud is empty (shape {points.shape}); "
-                            "check the camera and the segmentation")
+            raise DataError(
+                f"shape.ems: the point cloud is empty (shape {points.shape}); "
+                "check the camera and the segmentation"
+            )
         if not np.all(np.isfinite(points)):
-            raise DataError("shape.ems: the point cloud contains NaN or inf points; drop "
-                            "invalid depth pixels before fitting")
+            raise DataError(
+                "shape.ems: the point cloud contains NaN or inf points; drop "
+                "invalid depth pixels before fitting"
+            )
         clearance = self.config.table_clearance_m
         above = points[points[:, 2] > clearance] if self.config.on_table else points
         if len(above) < self.config.min_points:
@@ -932,5 +1353,6 @@ class EMSEstimator(Component):
                 f"shape.ems: only {len(above)} of {len(points)} points lie above the table "
                 f"(z > {clearance} m), fewer than min_points = {self.config.min_points}; "
                 "is the object in view? Move the camera closer, add views, or lower "
-                "min_points / table_clearance_m")
+                "min_points / table_clearance_m"
+            )
         return above

@@ -264,8 +264,9 @@ class EntropyNBV(Component):
 
     def _entropy_settings(self) -> EntropySettings:
         cfg = self.config
-        return EntropySettings(cfg.seen_distance_m, cfg.unseen_spread_m, cfg.sensor_noise_m,
-                               cfg.table_clearance_m)
+        return EntropySettings(
+            cfg.seen_distance_m, cfg.unseen_spread_m, cfg.sensor_noise_m, cfg.table_clearance_m
+        )
 
     def _near_taken(self, directions: FloatArray) -> FloatArray:
         """Mask [P] of candidate directions [P, 3] too close to a view returned before."""

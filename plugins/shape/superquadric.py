@@ -50,18 +50,37 @@ def shear_of(taper: FloatArray) -> FloatArray:
     return taper[..., 2] if taper.shape[-1] > 2 else np.zeros(taper.shape[:-1])
 
 
+def _tapered_x(x: FloatArray, y: FloatArray, scale_m: FloatArray, taper: FloatArray) -> FloatArray:
+    """x after eq. 2 and the shear, from superquadric-frame coordinates x, y [..., N]."""
+    return x * taper_factor(y, scale_m[..., 1], taper) + shear_of(taper)[..., None] * y
+
+
+def _untapered_x(
+    x: FloatArray, y: FloatArray, scale_m: FloatArray, taper: FloatArray
+) -> FloatArray:
+    """Inverse of :func:`_tapered_x` (y is unchanged, so f(y) is known): [..., N]."""
+    return (x - shear_of(taper)[..., None] * y) / taper_factor(y, scale_m[..., 1], taper)
+
+
 def apply_taper(points: FloatArray, scale_m: FloatArray, taper: FloatArray) -> FloatArray:
     """Deform superquadric-frame points [..., N, 3] by eq. 2, then shear. Returns [..., N, 3]."""
-    factor = taper_factor(points[..., 1], scale_m[..., 1], taper)
-    x = points[..., :1] * factor[..., None] + shear_of(taper)[..., None, None] * points[..., 1:2]
-    return np.concatenate([x, points[..., 1:]], axis=-1)
+    x = _tapered_x(points[..., 0], points[..., 1], scale_m, taper)
+    return np.stack([x, points[..., 1], points[..., 2]], axis=-1)
 
 
 def remove_taper(points: FloatArray, scale_m: FloatArray, taper: FloatArray) -> FloatArray:
     """Inverse of :func:`apply_taper` (y is unchanged, so f(y) is known). [..., N, 3]."""
-    factor = taper_factor(points[..., 1], scale_m[..., 1], taper)
-    x = points[..., :1] - shear_of(taper)[..., None, None] * points[..., 1:2]
-    return np.concatenate([x / factor[..., None], points[..., 1:]], axis=-1)
+    x = _untapered_x(points[..., 0], points[..., 1], scale_m, taper)
+    return np.stack([x, points[..., 1], points[..., 2]], axis=-1)
+
+
+def _log_f(points_t: FloatArray, scale_m: FloatArray, exponents: FloatArray) -> FloatArray:
+    """log F of eq. 1 from untapered coordinate rows [..., 3, N]: [..., N]."""
+    log_ratio = np.log(np.maximum(np.abs(points_t), _TINY_M)) - np.log(scale_m)[..., None]
+    scaled = (2.0 / exponents[..., [1, 1, 0]])[..., None] * log_ratio
+    log_xy = np.logaddexp(scaled[..., 0, :], scaled[..., 1, :])
+    ratio = exponents[..., 1, None] / exponents[..., 0, None]
+    return np.logaddexp(ratio * log_xy, scaled[..., 2, :])
 
 
 def log_inside_outside(
@@ -71,10 +90,7 @@ def log_inside_outside(
 
     Computed in log space so that small exponents (box-like shapes) cannot overflow.
     """
-    log_ratio = np.log(np.maximum(np.abs(points), _TINY_M)) - np.log(scale_m)[..., None, :]
-    eps1, eps2 = exponents[..., 0, None], exponents[..., 1, None]
-    log_xy = np.logaddexp(2.0 / eps2 * log_ratio[..., 0], 2.0 / eps2 * log_ratio[..., 1])
-    return np.logaddexp(eps2 / eps1 * log_xy, 2.0 / eps1 * log_ratio[..., 2])
+    return _log_f(np.swapaxes(points, -1, -2), scale_m, exponents)
 
 
 def inside_outside(
@@ -94,34 +110,48 @@ def radial_surface_points(
     This is the closest-point approximation of EMS: exact for spheres, and within a few
     percent of the true distance for points near the surface. Returns [..., N, 3].
     """
-    return _radial_surface(points, scale_m, exponents, taper)[0]
+    surface_t = _radial_surface(np.swapaxes(points, -1, -2), scale_m, exponents, taper)[0]
+    return np.swapaxes(surface_t, -1, -2)
 
 
 def _radial_surface(
-    points: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
+    points_t: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """:func:`radial_surface_points` [..., N, 3] and log F of eq. 1 per point [..., N]."""
-    untapered = remove_taper(points, scale_m, taper)
-    log_f = log_inside_outside(untapered, scale_m, exponents)
-    radial_scale = np.exp(-0.5 * exponents[..., 0, None] * np.maximum(log_f, _MIN_LOG_F))
-    return apply_taper(untapered * radial_scale[..., None], scale_m, taper), log_f
+    """:func:`radial_surface_points` of coordinate rows [..., 3, N], as coordinate rows
+    [..., 3, N], and log F of eq. 1 per point [..., N]."""
+    untapered = _with_x(
+        points_t, _untapered_x(points_t[..., 0, :], points_t[..., 1, :], scale_m, taper)
+    )
+    log_f = _log_f(untapered, scale_m, exponents)
+    radial = np.exp(-0.5 * exponents[..., 0, None] * np.maximum(log_f, _MIN_LOG_F))
+    surface = untapered * radial[..., None, :]
+    surface[..., 0, :] = _tapered_x(surface[..., 0, :], surface[..., 1, :], scale_m, taper)
+    return surface, log_f
+
+
+def _with_x(points_t: FloatArray, x: FloatArray) -> FloatArray:
+    """A copy of coordinate rows [..., 3, N] with the x row replaced by ``x`` [..., N] (the
+    rows broadcast to its leading shape)."""
+    out = np.array(np.broadcast_to(points_t, (*x.shape[:-1], *points_t.shape[-2:])))
+    out[..., 0, :] = x
+    return out
+
+
+def radial_distance_rows(
+    points_t: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`radial_distance_m` [..., N] of points given as coordinate rows [..., 3, N] (the
+    fast layout), and log F of eq. 1 [..., N] (< 0 inside), in one pass."""
+    surface, log_f = _radial_surface(points_t, scale_m, exponents, taper)
+    offset = points_t - surface
+    return np.sqrt((offset * offset).sum(axis=-2)), log_f
 
 
 def radial_distance_m(
     points: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
 ) -> FloatArray:
     """Distance from each point [..., N, 3] to its radial surface point. Returns [..., N]."""
-    surface = radial_surface_points(points, scale_m, exponents, taper)
-    return np.linalg.norm(points - surface, axis=-1)
-
-
-def radial_depth_m(
-    points: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
-) -> FloatArray:
-    """:func:`radial_distance_m` of the points inside the superquadric (F < 1), 0 outside:
-    [..., N]."""
-    surface, log_f = _radial_surface(points, scale_m, exponents, taper)
-    return np.linalg.norm(points - surface, axis=-1) * (log_f < 0)
+    return radial_distance_rows(np.swapaxes(points, -1, -2), scale_m, exponents, taper)[0]
 
 
 def _logaddexp_weight(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -131,79 +161,91 @@ def _logaddexp_weight(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatAr
 
 
 def radial_distance_gradient(
-    points: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
+    points_t: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """Radial distance (as :func:`radial_distance_m`) of untransformed superquadric-frame
-    points [N, 3] to one superquadric (scale [3], exponents [2], taper [3]) and its analytic
-    gradient [N, 11] with respect to (qx, qy, qz, a1, a2, a3, eps1, eps2, kappa1, kappa2,
-    shear), by reverse-mode differentiation of the forward pass written out below."""
-    a1, a2, a3 = (float(v) for v in scale_m)
-    eps1, eps2 = (float(v) for v in exponents)
-    k1, k2, shear = float(taper[0]), float(taper[1]), float(shear_of(taper))
-    qx, qy, qz = points[:, 0], points[:, 1], points[:, 2]
+    """Radial distance [..., N] (as :func:`radial_distance_m`) of untransformed
+    superquadric-frame points, given as coordinate rows [..., 3, N], to superquadrics (scale
+    [..., 3], exponents [..., 2], taper [..., 3]) and its analytic gradient [..., 11, N] with
+    respect to (qx, qy, qz, a1, a2, a3, eps1, eps2, kappa1, kappa2, shear), by reverse-mode
+    differentiation of the forward pass written out below (the three coordinates together
+    where they are alike: few, larger array operations)."""
+    a2 = scale_m[..., 1, None]
+    eps1, eps2 = exponents[..., 0, None], exponents[..., 1, None]
+    k1, k2, shear = taper[..., 0, None], taper[..., 1, None], shear_of(taper)[..., None]
+    power = (2.0 / exponents[..., [1, 1, 0]])[..., None]
+    qx, qy = points_t[..., 0, :], points_t[..., 1, :]
     # Forward: untaper, inside-outside in log space, radial scale, taper back.
     t_in, t_in_free = _taper_coordinate(qy, a2)
-    f_in, f_in_free = _taper_value(t_in, k1, k2)
-    u = np.stack([(qx - shear * qy) / f_in, qy, qz], axis=-1)
+    f_in, f_in_slope = _taper_value(t_in, k1, k2)
+    u = _with_x(points_t, (qx - shear * qy) / f_in)
     abs_u = np.abs(u)
-    u_free = abs_u > _TINY_M
-    log_ratio = np.log(np.maximum(abs_u, _TINY_M)) - np.log(np.asarray(scale_m))
-    log_xy, share_x = _logaddexp_weight(2.0 / eps2 * log_ratio[:, 0], 2.0 / eps2 * log_ratio[:, 1])
-    log_f, share_xy = _logaddexp_weight(eps2 / eps1 * log_xy, 2.0 / eps1 * log_ratio[:, 2])
-    log_f_free = log_f > _MIN_LOG_F
-    radial = np.exp(-0.5 * eps1 * np.maximum(log_f, _MIN_LOG_F))
-    v = u * radial[:, None]
-    t_out, t_out_free = _taper_coordinate(v[:, 1], a2)
-    f_out, f_out_free = _taper_value(t_out, k1, k2)
-    residual = points - np.stack([f_out * v[:, 0] + shear * v[:, 1], v[:, 1], v[:, 2]], axis=-1)
-    distance = np.linalg.norm(residual, axis=-1)
-    # Backward.
-    grad = np.zeros((len(points), 11))
-    g_surface = -residual / np.maximum(distance, _TINY_M)[:, None]
-    grad[:, :3] = -g_surface
-    g_f_out = g_surface[:, 0] * v[:, 0] * f_out_free
-    g_t_out = g_f_out * (k1 + 2.0 * k2 * t_out) * t_out_free
-    grad[:, 8] = g_f_out * t_out
-    grad[:, 9] = g_f_out * t_out * t_out
-    grad[:, 10] = g_surface[:, 0] * v[:, 1]
-    g_v = np.stack([g_surface[:, 0] * f_out,
-                    g_surface[:, 0] * shear + g_surface[:, 1] + g_t_out / a2,
-                    g_surface[:, 2]], axis=-1)
-    grad[:, 4] = -g_t_out * v[:, 1] / (a2 * a2)
-    g_log_f = -0.5 * eps1 * radial * np.sum(g_v * u, axis=-1) * log_f_free
-    grad[:, 6] = -0.5 * radial * np.sum(g_v * u, axis=-1) * np.maximum(log_f, _MIN_LOG_F)
-    g_xy, g_z = g_log_f * share_xy, g_log_f * (1.0 - share_xy)
-    grad[:, 7] += g_xy * log_xy / eps1
-    grad[:, 6] += -g_xy * eps2 * log_xy / eps1**2 - g_z * 2.0 * log_ratio[:, 2] / eps1**2
-    g_log_xy = g_xy * eps2 / eps1
-    g_log_ratio = np.stack([g_log_xy * share_x * 2.0 / eps2,
-                            g_log_xy * (1.0 - share_x) * 2.0 / eps2, g_z * 2.0 / eps1], axis=-1)
-    grad[:, 7] += -g_log_xy * 2.0 * (share_x * log_ratio[:, 0]
-                                     + (1.0 - share_x) * log_ratio[:, 1]) / eps2**2
-    grad[:, 3:6] += -g_log_ratio / np.array([a1, a2, a3])
-    g_u = g_v * radial[:, None] + np.where(u_free, g_log_ratio / np.where(u_free, u, 1.0), 0.0)
-    g_f_in = -g_u[:, 0] * u[:, 0] / f_in * f_in_free
-    g_t_in = g_f_in * (k1 + 2.0 * k2 * t_in) * t_in_free
-    grad[:, 8] += g_f_in * t_in
-    grad[:, 9] += g_f_in * t_in * t_in
-    grad[:, 10] += -g_u[:, 0] * qy / f_in
-    grad[:, 0] += g_u[:, 0] / f_in
-    grad[:, 1] += -g_u[:, 0] * shear / f_in + g_u[:, 1] + g_t_in / a2
-    grad[:, 2] += g_u[:, 2]
-    grad[:, 4] += -g_t_in * qy / (a2 * a2)
+    log_ratio = np.log(np.maximum(abs_u, _TINY_M)) - np.log(scale_m)[..., None]
+    scaled = power * log_ratio
+    log_xy, share_x = _logaddexp_weight(scaled[..., 0, :], scaled[..., 1, :])
+    log_f, share_xy = _logaddexp_weight(eps2 / eps1 * log_xy, scaled[..., 2, :])
+    clipped_log_f = np.maximum(log_f, _MIN_LOG_F)
+    radial = np.exp(-0.5 * eps1 * clipped_log_f)
+    v = u * radial[..., None, :]
+    t_out, t_out_free = _taper_coordinate(v[..., 1, :], a2)
+    f_out, f_out_slope = _taper_value(t_out, k1, k2)
+    residual = points_t - v
+    residual[..., 0, :] = qx - (f_out * v[..., 0, :] + shear * v[..., 1, :])
+    distance = np.sqrt((residual * residual).sum(axis=-2))
+    # Backward (g_surface = -residual / distance; the gradient wrt q starts at -g_surface).
+    g_surface = residual * (-1.0 / np.maximum(distance, _TINY_M))[..., None, :]
+    g_f_out = g_surface[..., 0, :] * v[..., 0, :]
+    g_t_out = g_f_out * f_out_slope * t_out_free
+    g_v = g_surface.copy()
+    g_v[..., 0, :] *= f_out
+    g_v[..., 1, :] += g_surface[..., 0, :] * shear + g_t_out / a2
+    g_radial = (g_v * u).sum(axis=-2)
+    g_log_f = (-0.5 * eps1) * radial * g_radial * (log_f > _MIN_LOG_F)
+    g_xy = g_log_f * share_xy
+    g_log_xy = g_xy * (eps2 / eps1)
+    g_x = g_log_xy * share_x
+    g_log_ratio = power * np.stack([g_x, g_log_xy - g_x, g_log_f - g_xy], axis=-2)
+    g_u = g_v * radial[..., None, :] + g_log_ratio / np.where(abs_u > _TINY_M, u, np.inf)
+    g_ux = g_u[..., 0, :] / f_in
+    g_t_in = -g_ux * u[..., 0, :] * f_in_slope * t_in_free
+    grad = np.empty((*distance.shape[:-1], 11, distance.shape[-1]))
+    grad[..., :3, :] = g_u - g_surface
+    grad[..., 0, :] = g_ux - g_surface[..., 0, :]
+    grad[..., 1, :] += g_t_in / a2 - g_ux * shear
+    grad[..., 3:6, :] = -g_log_ratio / scale_m[..., None]
+    grad[..., 4, :] -= (g_t_out * v[..., 1, :] + g_t_in * qy) / (a2 * a2)
+    grad[..., 6, :] = (
+        -0.5 * radial * g_radial * clipped_log_f
+        - (g_xy * eps2 * log_xy + 2.0 * (g_log_f - g_xy) * log_ratio[..., 2, :]) / eps1**2
+    )
+    grad[..., 7, :] = (
+        g_xy * log_xy / eps1
+        - g_log_xy
+        * 2.0
+        * (share_x * log_ratio[..., 0, :] + (1.0 - share_x) * log_ratio[..., 1, :])
+        / eps2**2
+    )
+    g_f_in = -g_ux * u[..., 0, :] * (f_in > _MIN_TAPER_FACTOR)
+    g_f_out = g_f_out * (f_out > _MIN_TAPER_FACTOR)
+    grad[..., 8, :] = g_f_out * t_out + g_f_in * t_in
+    grad[..., 9, :] = g_f_out * t_out * t_out + g_f_in * t_in * t_in
+    grad[..., 10, :] = g_surface[..., 0, :] * v[..., 1, :] - g_ux * qy
     return distance, grad
 
 
-def _taper_coordinate(y_m: FloatArray, a2_m: float) -> tuple[FloatArray, FloatArray]:
-    """t = y / a2 clipped to [-1, 1] [N], and 1.0 where it is not clipped (else 0.0) [N]."""
+def _taper_coordinate(y_m: FloatArray, a2_m: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """t = y / a2 clipped to [-1, 1] [..., N], and whether it is not clipped [..., N]."""
     t = y_m / a2_m
-    return np.clip(t, -1.0, 1.0), (np.abs(t) < 1.0).astype(float)
+    return np.clip(t, -1.0, 1.0), np.abs(t) < 1.0
 
 
-def _taper_value(t: FloatArray, kappa1: float, kappa2: float) -> tuple[FloatArray, FloatArray]:
-    """f(t) of eq. 2 with its floor [N], and 1.0 where the floor is not active [N]."""
+def _taper_value(
+    t: FloatArray, kappa1: FloatArray, kappa2: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """f(t) of eq. 2 with its floor [..., N], and its slope df/dt where the floor is not
+    active (else 0) [..., N]."""
     factor = 1.0 + kappa1 * t + kappa2 * t * t
-    return np.maximum(factor, _MIN_TAPER_FACTOR), (factor > _MIN_TAPER_FACTOR).astype(float)
+    free = factor > _MIN_TAPER_FACTOR
+    return np.maximum(factor, _MIN_TAPER_FACTOR), (kappa1 + 2.0 * kappa2 * t) * free
 
 
 def to_superquadric_frame(sq: Superquadric, points_m: FloatArray) -> FloatArray:
@@ -222,8 +264,9 @@ def _signed_power(value: FloatArray, exponent: float) -> FloatArray:
     return np.sign(value) * np.abs(value) ** exponent
 
 
-def _arc_uniform_angles(exponent: float, x_scale: float, y_scale: float, lo: float,
-                        hi: float, count: int) -> FloatArray:
+def _arc_uniform_angles(
+    exponent: float, x_scale: float, y_scale: float, lo: float, hi: float, count: int
+) -> FloatArray:
     """Angles in [lo, hi] [count] evenly spaced in arc length along the scaled superellipse."""
     angle = np.linspace(lo, hi, _ARC_SAMPLES)
     x = x_scale * _signed_power(np.cos(angle), exponent)
@@ -239,11 +282,14 @@ def _surface_grid(sq: Superquadric) -> FloatArray:
     eta = _arc_uniform_angles(eps1, max(a1, a2), a3, -np.pi / 2, np.pi / 2, _GRID_ETA)
     omega = _arc_uniform_angles(eps2, a1, a2, -np.pi, np.pi, _GRID_OMEGA)
     ring = _signed_power(np.cos(eta), eps1)[:, None]
-    points = np.stack(np.broadcast_arrays(
-        a1 * ring * _signed_power(np.cos(omega), eps2)[None, :],
-        a2 * ring * _signed_power(np.sin(omega), eps2)[None, :],
-        a3 * _signed_power(np.sin(eta), eps1)[:, None],
-    ), axis=-1)
+    points = np.stack(
+        np.broadcast_arrays(
+            a1 * ring * _signed_power(np.cos(omega), eps2)[None, :],
+            a2 * ring * _signed_power(np.sin(omega), eps2)[None, :],
+            a3 * _signed_power(np.sin(eta), eps1)[:, None],
+        ),
+        axis=-1,
+    )
     return apply_taper(points, sq.scale_m, sq.taper)
 
 
@@ -256,13 +302,19 @@ def sample_surface(sq: Superquadric, count: int, rng: np.random.Generator) -> Fl
     grid = _surface_grid(sq)
     corner00, corner10 = grid[:-1, :-1], grid[1:, :-1]
     corner01, corner11 = grid[:-1, 1:], grid[1:, 1:]
-    area = 0.5 * (np.linalg.norm(np.cross(corner10 - corner00, corner01 - corner00), axis=-1)
-                  + np.linalg.norm(np.cross(corner10 - corner11, corner01 - corner11), axis=-1))
+    area = 0.5 * (
+        np.linalg.norm(np.cross(corner10 - corner00, corner01 - corner00), axis=-1)
+        + np.linalg.norm(np.cross(corner10 - corner11, corner01 - corner11), axis=-1)
+    )
     cell = rng.choice(area.size, size=count, p=(area / area.sum()).ravel())
     row, col = np.unravel_index(cell, area.shape)
     u, v = rng.random((2, count, 1))
-    local = ((1 - u) * (1 - v) * corner00[row, col] + u * (1 - v) * corner10[row, col]
-             + (1 - u) * v * corner01[row, col] + u * v * corner11[row, col])
+    local = (
+        (1 - u) * (1 - v) * corner00[row, col]
+        + u * (1 - v) * corner10[row, col]
+        + (1 - u) * v * corner01[row, col]
+        + u * v * corner11[row, col]
+    )
     rotation, translation = sq.world_from_sq[:3, :3], sq.world_from_sq[:3, 3]
     return local @ rotation.T + translation
 
@@ -283,14 +335,21 @@ def surface_area_m2(scale_m: FloatArray, exponents: FloatArray, taper: FloatArra
     """
     a1 = scale_m[..., 0] * (1.0 + taper[..., 1] / 3.0)
     a2, a3 = scale_m[..., 1], scale_m[..., 2]
-    box = 8.0 * (a1 * a2 + a2 * a3 + a1 * a3)
-    diamond_prism = 8.0 * np.hypot(a1, a2) * a3 + 4.0 * a1 * a2
-    bipyramid = 4.0 * (a1 * np.hypot(a2, a3) + a2 * np.hypot(a1, a3))
     side_xy, side_yz, side_xz = np.hypot(a1, a2), np.hypot(a2, a3), np.hypot(a1, a3)
+    box = 8.0 * (a1 * a2 + a2 * a3 + a1 * a3)
+    diamond_prism = 8.0 * side_xy * a3 + 4.0 * a1 * a2
+    bipyramid = 4.0 * (a1 * side_yz + a2 * side_xz)
     half_perimeter = 0.5 * (side_xy + side_yz + side_xz)
-    octahedron = 8.0 * np.sqrt(np.maximum(half_perimeter * (half_perimeter - side_xy)
-                                          * (half_perimeter - side_yz)
-                                          * (half_perimeter - side_xz), 0.0))
+    octahedron = 8.0 * np.sqrt(
+        np.maximum(
+            half_perimeter
+            * (half_perimeter - side_xy)
+            * (half_perimeter - side_yz)
+            * (half_perimeter - side_xz),
+            0.0,
+        )
+    )
     w1, w2 = 0.5 * exponents[..., 0], 0.5 * exponents[..., 1]
-    return ((1 - w1) * ((1 - w2) * box + w2 * diamond_prism)
-            + w1 * ((1 - w2) * bipyramid + w2 * octahedron))
+    return (1 - w1) * ((1 - w2) * box + w2 * diamond_prism) + w1 * (
+        (1 - w2) * bipyramid + w2 * octahedron
+    )
