@@ -22,9 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 from common import Row, median_time_s
-from vistac.protocols import Scene
-from vistac.testing import build_components
-from vistac.types import PointCloud, ShapeEstimate, Superquadric
+from vistac.testing import build_components, two_box_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 CANDIDATES = 32
@@ -46,17 +44,6 @@ PLAIN_CEM = {
 and momentum."""
 
 
-def _scene() -> Scene:
-    """Two 100 x 80 x 50 mm boxes side by side at y = 0.45 m."""
-    links = []
-    for x_m in (-0.05, 0.05):
-        pose = np.eye(4)
-        pose[:3, 3] = [x_m, 0.45, 0.025]
-        links.append(Superquadric(np.array([0.05, 0.04, 0.025]), np.array([0.1, 0.1]), pose))
-    cloud = PointCloud(np.random.default_rng(0).normal([0.0, 0.45, 0.03], 0.02, (500, 3)))
-    poses = np.array([[-0.05, 0.45, 0.0], [0.05, 0.45, 0.0]])
-    return Scene(cloud, ShapeEstimate(tuple(links), poses, np.zeros((2, 14)), cloud))
-
 
 def _components(**extra: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """The GNN process model and the dual filter, plus ``extra`` components."""
@@ -77,7 +64,7 @@ def time_selection_s(repeats: int) -> tuple[float, float, int]:
     )
     with tempfile.TemporaryDirectory() as tmp:
         ctx = build_components(components, Path(tmp))
-        scene = _scene()
+        scene = two_box_scene()
         ctx.component("filter").initialise(scene)
         rng = np.random.default_rng(0)
         candidates = ctx.component("affordances").sample(scene, rng)[:CANDIDATES]
@@ -98,7 +85,7 @@ def time_planning_s(repeats: int) -> tuple[float, float, str]:
     )
     with tempfile.TemporaryDirectory() as tmp:
         ctx = build_components(components, Path(tmp))
-        scene = _scene()
+        scene = two_box_scene()
         ctx.component("filter").initialise(scene)
         rng = np.random.default_rng(0)
         icem, cem = ctx.component("icem"), ctx.component("cem")

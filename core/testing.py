@@ -34,6 +34,8 @@ from vistac.types import (
     PointCloud,
     Pull,
     Push,
+    ShapeEstimate,
+    Superquadric,
     TactileReading,
     Viewpoint,
 )
@@ -174,6 +176,19 @@ def _reference_scene() -> Scene:
     xx, yy = np.meshgrid(grid, grid)
     top = np.stack([xx.ravel(), yy.ravel() + 0.45, np.full(xx.size, 0.05)], axis=1)
     return Scene(PointCloud(top))
+
+
+def two_box_scene() -> Scene:
+    """Two fitted 100 x 80 x 50 mm boxes side by side at y = 0.45 m (links at x = -0.05 and
+    0.05 m), with a 500-point cloud around them: a two-link object for filters and planners."""
+    links = []
+    for x_m in (-0.05, 0.05):
+        pose = np.eye(4)
+        pose[:3, 3] = [x_m, 0.45, 0.025]
+        links.append(Superquadric(np.array([0.05, 0.04, 0.025]), np.array([0.1, 0.1]), pose))
+    cloud = PointCloud(np.random.default_rng(0).normal([0.0, 0.45, 0.03], 0.02, (500, 3)))
+    poses = np.array([[-0.05, 0.45, 0.0], [0.05, 0.45, 0.0]])
+    return Scene(cloud, ShapeEstimate(tuple(links), poses, np.zeros((2, 14)), cloud))
 
 
 def _check_action_sampler(sampler: Any, advance: Advance) -> None:

@@ -33,9 +33,8 @@ from vistac.plugins.filters.models import (
 )
 from vistac.plugins.filters.nets import GraphProcessNet
 from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
-from vistac.protocols import Scene
-from vistac.testing import build_components
-from vistac.types import Action, PointCloud, ShapeEstimate, Superquadric
+from vistac.testing import build_components, two_box_scene
+from vistac.types import Action
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -52,17 +51,6 @@ HORIZON_S, RATE_HZ, ICEM_RATE_HZ = 2.5, 15.0, 5.0
 """The info-gain look-ahead (37 steps) and the iCEM one."""
 
 
-def _scene() -> Scene:
-    """Two 100 x 80 x 50 mm boxes side by side at y = 0.45 m (as benchmarks/bench_actions)."""
-    links = []
-    for x_m in (-0.05, 0.05):
-        pose = np.eye(4)
-        pose[:3, 3] = [x_m, 0.45, 0.025]
-        links.append(Superquadric(np.array([0.05, 0.04, 0.025]), np.array([0.1, 0.1]), pose))
-    cloud = PointCloud(np.random.default_rng(0).normal([0.0, 0.45, 0.03], 0.02, (500, 3)))
-    poses = np.array([[-0.05, 0.45, 0.0], [0.05, 0.45, 0.0]])
-    return Scene(cloud, ShapeEstimate(tuple(links), poses, np.zeros((2, 14)), cloud))
-
 
 @pytest.fixture(scope="module")
 def skill(tmp_path_factory: pytest.TempPathFactory) -> Any:
@@ -75,13 +63,13 @@ def skill(tmp_path_factory: pytest.TempPathFactory) -> Any:
         "planner": {"plugin": "actions.info_gain", "with": {"horizon_s": HORIZON_S}},
     }
     ctx = build_components(components, tmp_path_factory.mktemp("skill"))
-    ctx.component("filter").initialise(_scene())
+    ctx.component("filter").initialise(two_box_scene())
     return ctx
 
 
 def _candidates(skill: Any, seed: int = 0) -> list[Action]:
     sampled: list[Action] = skill.component("affordances").sample(
-        _scene(), np.random.default_rng(seed)
+        two_box_scene(), np.random.default_rng(seed)
     )
     return sampled[:32]
 
@@ -145,12 +133,12 @@ def test_info_gain_choice_is_unchanged(
 ) -> None:
     planner, candidates = skill.component("planner"), _candidates(skill, seed)
     gains = planner.gains(candidates)
-    chosen = planner.select(candidates, _scene(), np.random.default_rng(0))
+    chosen = planner.select(candidates, two_box_scene(), np.random.default_rng(0))
     float64_look_ahead()
     want = planner.gains(candidates)
     assert torch.allclose(gains, want, rtol=GAIN_REL_TOL, atol=0.0)
     assert chosen is candidates[int(want.argmax())]
-    assert planner.select(candidates, _scene(), np.random.default_rng(0)) is chosen
+    assert planner.select(candidates, two_box_scene(), np.random.default_rng(0)) is chosen
 
 
 # -- the float32 copy -------------------------------------------------------------------------
