@@ -73,11 +73,11 @@ def _fit_quadratic(train_target: float, val_target: float, epochs: int = 5) -> t
         yield (weight.weight.sum() - train_target).square()
 
     def val() -> float:
-        return float((weight.weight.sum() - val_target).square())
+        return float((weight.weight.detach().sum() - val_target).square())
 
     config = TrainConfig(learning_rate=0.1, patience=2)
     history = fit(list(weight.parameters()), train, val, [weight], epochs, config, "test")
-    return float(weight.weight.sum()), len(history)
+    return float(weight.weight.detach().sum()), len(history)
 
 
 def test_fit_keeps_the_best_epoch_and_never_a_worse_model_than_the_start() -> None:
