@@ -97,14 +97,20 @@ def reconstruction_error_m(
 def poisson_reconstruction(
     points_m: FloatArray, normals: FloatArray, depth: int = 8
 ) -> SurfaceMesh:
-    """The peer: open3d's screened Poisson surface of oriented points [N, 3] / normals [N, 3]."""
+    """The peer: open3d's screened Poisson surface of oriented points [N, 3] / normals [N, 3].
+
+    Runs on one thread: open3d's multi-threaded Poisson solver crashes the process at random
+    (a known race in its solver), and these clouds are small enough not to need more.
+    """
     import open3d as o3d
     from vistac.plugins.touch.gpis import SurfaceMesh
 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_m))
     cloud.normals = o3d.utility.Vector3dVector(normals)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=depth)
+        mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+            cloud, depth=depth, n_threads=1
+        )
     return SurfaceMesh(np.asarray(mesh.vertices, dtype=np.float64),
                        np.asarray(mesh.triangles, dtype=np.int64))  # fmt: skip
 
@@ -166,11 +172,15 @@ class LearnShape(SkillBehaviour):
         surface: str = "surface"
         estimator: str = "estimator"
         directory: SkillPath | None = Field(
-            None, description="where learned shapes go (relative to the skill file); "
-            "default: OUT/learned of the run")
-        name: str | None = Field(None, pattern=r"^[A-Za-z0-9_.-]+$",
-                                 description="class name = file stem; default: the most "
-                                 "likely known class + '_learned'")
+            None,
+            description="where learned shapes go (relative to the skill file); "
+            "default: OUT/learned of the run",
+        )
+        name: str | None = Field(
+            None,
+            pattern=r"^[A-Za-z0-9_.-]+$",
+            description="class name = file stem; default: the most likely known class + '_learned'",
+        )
         only_novel: bool = True
 
     def update(self) -> Status:
