@@ -388,6 +388,23 @@ def test_nan_raises_a_data_error_naming_the_entry() -> None:
         )
 
 
+class ExplodingObservation(LinearObservation):
+    """Expected observations so spread that the unscented update is numerically singular."""
+
+    def expected(self, states: Tensor, force_n: Tensor) -> Tensor:
+        return super().expected(states, force_n) * 1e10
+
+
+def test_a_diverged_pose_update_raises_a_data_error_naming_the_widest_entry() -> None:
+    generator = torch.Generator().manual_seed(11)
+    observation = as_tensor([0.0, 0.0, 0.0, 1.0, 1.0])
+    dual = DualFilter(LAYOUT, LinearProcess(), ExplodingObservation(), 10)
+    with pytest.raises(
+        DataError, match=r"numerically singular.*diverged \(widest pose entry \w+_0"
+    ):
+        dual.step(prior_belief(), make_inputs(), DT_S, observation, generator)
+
+
 def test_invalid_settings_are_rejected() -> None:
     with pytest.raises(ValueError, match="liu_west_delta"):
         DualFilter(LAYOUT, LinearProcess(), LinearObservation(), liu_west_delta=0.2)

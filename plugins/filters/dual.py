@@ -276,9 +276,7 @@ def log_mean_likelihood(squared_sums: Tensor) -> Tensor:
     return torch.logsumexp(-0.5 * squared_sums, -2) - math.log(squared_sums.shape[-2])
 
 
-def observation_log_likelihood(
-    expected: Tensor, observation: Tensor, noise_var: Tensor
-) -> Tensor:
+def observation_log_likelihood(expected: Tensor, observation: Tensor, noise_var: Tensor) -> Tensor:
     """Gaussian log likelihood (eq. 31, up to a constant) of C points.
 
     expected [..., C, k], observation [..., k], noise_var (diagonal R) [..., k] -> [..., C].
@@ -420,7 +418,14 @@ def woodbury_update(
     whitened = observation_deviation * inverse_std.unsqueeze(-2)  # U R^-1/2
     gram = whitened @ whitened.transpose(-1, -2)  # U R^-1 U^T
     eye = torch.eye(weights.shape[-1], dtype=mean.dtype, device=mean.device)
-    core_factor = torch.linalg.cholesky(eye + root_weights * gram * root_weights.transpose(-1, -2))
+    core = eye + root_weights * gram * root_weights.transpose(-1, -2)
+    core_factor, info = torch.linalg.cholesky_ex(core)
+    if bool((info != 0).any()):
+        require_finite(whitened, "whitened observation deviation")
+        raise DataError(
+            "the unscented pose update is numerically singular: the sigma points' expected "
+            f"observations spread by up to {float(whitened.abs().max()):.3g} noise stds"
+        )
     whitened_innovation = (innovation * inverse_std).unsqueeze(-1)
     projected = root_weights.squeeze(-1) * (whitened @ whitened_innovation).squeeze(-1)
     solved = torch.cholesky_solve(torch.cat([projected.unsqueeze(-1), state_dev], -1), core_factor)
@@ -603,7 +608,9 @@ class DualFilter:
             ess = effective_sample_size(log_weights.detach())
             logger.debug(
                 "effective sample size %s of %d (tempering %s)",
-                ess.tolist(), self.sigma_points, beta.tolist(),
+                ess.tolist(),
+                self.sigma_points,
+                beta.tolist(),
             )
         parameters = sigma_pred[..., self.layout.parameter_slice]
         parameter_mean, parameter_cov = liu_west(parameters, weights, self.liu_west_delta)
@@ -646,6 +653,19 @@ class DualFilter:
         require_finite_summary(log_likelihood, squared, "expected observation")
         return log_likelihood
 
+    def _widest_pose_entry(self, mean: Tensor, cov: Tensor) -> str:
+        """Where a diverged pose belief (mean [..., d], cov [..., d, d]) is widest, in words."""
+        std = cov.detach().diagonal(dim1=-2, dim2=-1).clamp_min(0.0).sqrt()
+        flat = int(std.reshape(-1).argmax())
+        batch, entry = divmod(flat, std.shape[-1])
+        name = self.layout.names[self.layout.pose_slice][entry]
+        value = float(mean.detach().reshape(-1, std.shape[-1])[batch, entry])
+        return (
+            f"the belief has diverged (widest pose entry {name} = {value:.3g} +- "
+            f"{float(std.reshape(-1)[flat]):.3g}); check the process model's checkpoint and "
+            "the object's first look"
+        )
+
     def _update_pose(
         self,
         belief_pred: Belief,
@@ -673,13 +693,16 @@ class DualFilter:
         expected = self.observation_model.expected(torch.cat([points, params], -1), forces)
         expected_mean = weights @ expected
         require_finite_summary(expected_mean, expected, "expected observation")
-        mean, cov = woodbury_update(
-            prior_mean,
-            points - prior_mean.unsqueeze(-2),
-            consume_subtract(expected, expected_mean.unsqueeze(-2)),
-            weights,
-            observation - expected_mean,
-            noise_var,
-        )
+        try:
+            mean, cov = woodbury_update(
+                prior_mean,
+                points - prior_mean.unsqueeze(-2),
+                consume_subtract(expected, expected_mean.unsqueeze(-2)),
+                weights,
+                observation - expected_mean,
+                noise_var,
+            )
+        except DataError as error:
+            raise DataError(f"{error}; {self._widest_pose_entry(prior_mean, prior_cov)}") from error
         regression = cov @ torch.cholesky_solve(regression, prior_factor)
         return mean, cov, regression
