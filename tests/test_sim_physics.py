@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from simctx import TestContext, add_camera, box_object, sim_setup
 from vistac.component import Component
-from vistac.errors import SafetyError
+from vistac.errors import HardwareError, SafetyError
 from vistac.objects import HINGE_GAP_M
 from vistac.plugins.actions import plugin as actions_plugin
 from vistac.plugins.actions.executor import CartesianExecutor
@@ -57,6 +57,20 @@ def test_push_moves_box_along_pd_and_force_matches_coulomb(tmp_path: Path) -> No
     total = forces[-30:].sum(axis=1).mean(axis=0)
     assert total[1] == pytest.approx(-0.3 * 0.5 * 9.81, rel=0.15), "object pushes back on the pad"
     assert abs(total[0]) < 0.05
+
+
+def test_a_descent_onto_the_object_is_stopped_as_blocked(tmp_path: Path) -> None:
+    """A push whose pre-contact point lies on the box (the believed pose is off) must not
+    press the fingers into it until the workspace floor: the stalled descent stops the arm."""
+    ctx = sim_setup(tmp_path, box_object())
+    world = ctx.find("world")
+    on_top = Push(cp_m=np.array([0.0, 0.47]), pd_rad=math.pi / 2, speed_mps=0.02)
+    with pytest.raises(HardwareError, match=r"'descend' move is blocked at .* something in"):
+        execute(ctx, on_top)
+    np.testing.assert_array_equal(world.data.ctrl[world.index.arm_actuators], 0.0)
+    x, y, _ = world.link_poses()[0]
+    assert abs(x) < 1e-3 and abs(y - 0.45) < 1e-3, "the object was not shoved"
+    assert ctx.find("arm").state().pose[2] > 0.03, "the fingers stayed on the box"
 
 
 def test_heavier_object_needs_more_force(tmp_path: Path) -> None:

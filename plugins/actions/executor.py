@@ -12,7 +12,9 @@ An action is a list of phases, each stepped once per control period:
 
 Moves use a proportional velocity command towards the waypoint, capped at the arm's speed,
 and end within ``tolerance_m`` / ``yaw_tolerance_rad``. Yaw targets are taken modulo pi (the
-two fingers are symmetric), nearest to the current yaw.
+two fingers are symmetric), nearest to the current yaw. A move that over ``stall_s`` gets less
+than half as far as it was commanded is blocked (the fingers on the object, say): the arm
+stops at once and the action fails with a HardwareError saying where.
 """
 
 from __future__ import annotations
@@ -32,6 +34,25 @@ from vistac.types import Action, FloatArray, Pull, Push
 log = logging.getLogger(__name__)
 
 _GRIPPER_SETTLE_S = 0.15
+_MIN_COMMANDED_M = 0.002
+"""The stall check skips windows in which less than this was commanded (at the waypoint)."""
+_YAW_M_PER_RAD = 0.05
+"""Yaw counted as distance in the stall check (a turn in place is progress)."""
+
+
+def _move_metric(position_m: FloatArray, yaw_rad: float) -> float:
+    """A position [3] and yaw as one distance (m) for the stall check."""
+    return float(np.linalg.norm(position_m)) + _YAW_M_PER_RAD * abs(yaw_rad)
+
+
+@dataclass
+class _StallWindow:
+    """Progress of a move since ``start_s``: the distance to the waypoint then and the
+    distance commanded since (both as :func:`_move_metric`)."""
+
+    start_s: float
+    start_distance_m: float
+    commanded_m: float = 0.0
 
 
 def _wrap(angle_rad: float, period_rad: float = 2.0 * math.pi) -> float:
@@ -69,6 +90,10 @@ class CartesianExecutor(Component):
         gain_per_s: float = Field(default=3.0, gt=0.0)
         max_yaw_rate_rad_s: float = Field(default=0.5, gt=0.0)
         move_timeout_s: float = Field(default=60.0, gt=0.0)
+        stall_s: float = Field(default=0.5, gt=0.0)
+        """A move that gets less than half as much nearer its waypoint as it was commanded
+        to move over this long is blocked: the arm stops and the action fails (for example a
+        descent onto the object when the believed pose is off)."""
         gripper_timeout_s: float = Field(default=5.0, gt=0.0)
         park_pose: tuple[float, float, float, float] | None = (0.0, 0.25, 0.12, 0.0)
         """Where the TCP waits after an action (x, y, z m, yaw rad), out of the cameras'
@@ -86,6 +111,8 @@ class CartesianExecutor(Component):
         self._entered = False
         self._elapsed_s = 0.0
         self._target = np.zeros(4)
+        self._stall_window: _StallWindow | None = None
+        self._dt_s = 0.0
 
     # -- Executor protocol ----------------------------------------------------------------
 
@@ -97,6 +124,7 @@ class CartesianExecutor(Component):
         log.debug("executing %s: %s", action.kind, [p.name for p in self._phases])
 
     def step(self, dt_s: float) -> tuple[str, bool]:
+        self._dt_s = dt_s
         while self._index < len(self._phases):
             phase = self._phases[self._index]
             if not self._entered:
@@ -181,13 +209,35 @@ class CartesianExecutor(Component):
             goal = np.array(target(pose), dtype=np.float64)
             goal[3] = pose[3] + _wrap(goal[3] - pose[3], math.pi)
             self._target = goal
+            self._stall_window = None
 
-        return _Phase(
-            name,
-            enter,
-            lambda _: self._at_target(),
-            self._command_towards_target,
-            self.config.move_timeout_s,
+        def command() -> None:
+            self._command_towards_target()  # first: the arm's own errors take precedence
+            self._check_progress(name)
+
+        return _Phase(name, enter, lambda _: self._at_target(), command, self.config.move_timeout_s)
+
+    def _check_progress(self, name: str) -> None:
+        """Raise HardwareError (arm stopped) when, over the last ``stall_s``, the move got
+        less than half as much nearer its waypoint as it was commanded to move."""
+        error = self._target - self.arm.state().pose
+        distance_m = _move_metric(error[:3], _wrap(error[3]))
+        window = self._stall_window
+        if window is None or self._elapsed_s - window.start_s >= self.config.stall_s:
+            if window is not None and window.commanded_m >= _MIN_COMMANDED_M:
+                progress_m = window.start_distance_m - distance_m
+                if progress_m < 0.5 * window.commanded_m:
+                    self._blocked(name, error, progress_m, window.commanded_m)
+            self._stall_window = _StallWindow(self._elapsed_s, distance_m)
+
+    def _blocked(self, name: str, error: FloatArray, progress_m: float, commanded_m: float) -> None:
+        self.abort()
+        x, y, z = self._target[:3] - error[:3]
+        raise HardwareError(
+            f"executor: the {name!r} move is blocked at ({x:.3f}, {y:.3f}, {z:.3f}) m: it got "
+            f"{progress_m * 1e3:.1f} mm nearer its waypoint in {self.config.stall_s} s while "
+            f"commanded {commanded_m * 1e3:.1f} mm; the arm is stopped. Is something in the "
+            "way? (a push whose start lies on the object: the believed pose is off)"
         )
 
     def _at_target(self) -> bool:
@@ -211,6 +261,8 @@ class CartesianExecutor(Component):
             )
         )
         self.arm.command_velocity(np.append(velocity, yaw_rate))
+        if self._stall_window is not None:
+            self._stall_window.commanded_m += _move_metric(velocity, yaw_rate) * self._dt_s
 
     def _gripper_phase(
         self, name: str, command: Callable[[], None], check_grasp: bool = False
