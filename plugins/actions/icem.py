@@ -79,7 +79,12 @@ class ICEMController(Component):
         keep_elites: float = Field(0.3, ge=0, le=1, description="share of elites carried over")
         momentum: float = Field(0.1, ge=0, lt=1, description="weight of the old mean and std")
         speed_mps: float = Field(0.02, gt=0, le=0.25)
-        duration_s: tuple[float, float] = Field((0.5, 4.0), description="push duration bounds")
+        duration_s: tuple[float, float] = Field(
+            (1.0, 4.0),
+            description="push duration bounds; the executor starts the pad 10 mm (standoff) "
+            "from the object, so at 20 mm/s a push shorter than 0.5 s never touches it, and a "
+            "process model learned from pushes that did will still predict it moving",
+        )
         max_offset_deg: float = Field(30.0, ge=0, le=80, description="|pd - inward normal|")
         rate_hz: float = Field(5.0, gt=0, description="steps per second of the look-ahead")
         angle_weight_m_per_rad: float = Field(
