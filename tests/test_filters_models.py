@@ -16,6 +16,7 @@ from scipy.optimize import least_squares, minimize
 from simctx import TestContext
 from torch import Tensor
 from vistac.errors import ConfigError, DataError
+from vistac.plugins.filters import nets
 from vistac.plugins.filters.analytical import (
     characteristic_length_m,
     quasi_static_push,
@@ -165,8 +166,6 @@ def reference_graph_step(
 ) -> Prediction:
     """Algorithm 1 written link by link for one batch element (states [C, n]): the cause
     pass breadth-first from the robot, the effect pass back from the deepest links."""
-    from vistac.plugins.filters import nets
-
     layout = StateLayout((states.shape[-1] + 1) // 11)
     n_links, acted = layout.n_links, int(inputs.link)
     links = net._link_nodes(states, inputs)  # [C, L, D]
@@ -270,6 +269,38 @@ def test_gnn_is_translation_and_rotation_invariant() -> None:
     moved = net(moved_states, moved_inputs, DT_S)
     torch.testing.assert_close(moved.pose, move(original.pose))
     torch.testing.assert_close(moved.force_n, rotate(original.force_n, angle))
+
+
+@pytest.mark.parametrize(
+    ("local_xy_m", "gap_m"),
+    [
+        ((0.01, -0.005), 0.0),  # inside the footprint
+        ((-0.05, 0.0), 0.01),  # 1 cm behind the -x side
+        ((0.0, 0.022), 0.002),  # 2 mm beside the +y side
+        ((0.046, -0.028), 0.01),  # off a corner: hypot(6 mm, 8 mm)
+        ((0.2, 0.0), nets.GAP_CAP_M),  # far: capped
+    ],
+)
+def test_link_features_give_the_tcp_gap_to_each_footprint(
+    local_xy_m: tuple[float, float], gap_m: float
+) -> None:
+    """The gap feature is the TCP's distance to the link's footprint box (half extents
+    40 x 20 mm), whatever the link's pose and the push direction."""
+    link_pose = torch.tensor([0.1, 0.4, 0.7], dtype=DTYPE)
+    tcp_xy = link_pose[:2] + rotate(torch.tensor(local_xy_m, dtype=DTYPE), link_pose[2])
+    states = torch.cat([link_pose, torch.tensor([0, 0, 0, 0.8, 0.3, 0, 0])]).to(DTYPE)[None]
+    inputs = ProcessInput(
+        tcp=torch.cat([tcp_xy, torch.tensor([0.3, 0.02, 0.0, 0.0], dtype=DTYPE)]),
+        pd_rad=torch.tensor(-1.2, dtype=DTYPE),
+        is_pull=torch.tensor(0.0, dtype=DTYPE),
+        link=torch.tensor(0),
+        link_size_m=torch.tensor([[0.04, 0.02]], dtype=DTYPE),
+        link_offset=torch.zeros(1, 3, dtype=DTYPE),
+    )
+    features = nets.link_features(states, inputs)
+    assert features.shape == (1, 1, nets.LINK_FEATURE_DIM)
+    got_m = float(features[0, 0, -1]) * nets.SIZE_SCALE_M
+    assert got_m == pytest.approx(gap_m, abs=1e-12)
 
 
 def test_ff_rejects_another_link_count(tmp_path: Path) -> None:

@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor
-from vistac.plugins.filters.nets import perp, rotate
+from vistac.plugins.filters.nets import box_gap_m, perp, rotate
 from vistac.plugins.filters.state import Prediction, ProcessInput, StateLayout
 
 GRAVITY_MPS2 = 9.81
@@ -169,7 +169,7 @@ def box_contact(point_m: Tensor, half_extents_m: Tensor) -> tuple[Tensor, Tensor
     outside the box [...] (0 inside)).
     """
     excess = point_m.abs() - half_extents_m
-    outside = torch.linalg.vector_norm(excess.clamp(min=0.0), dim=-1)
+    outside = box_gap_m(point_m, half_extents_m)
     on_x = excess[..., 0] >= excess[..., 1]
     sign = torch.where(point_m >= 0.0, 1.0, -1.0).to(point_m.dtype)
     clamped = torch.maximum(torch.minimum(point_m, half_extents_m), -half_extents_m)

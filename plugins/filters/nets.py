@@ -10,9 +10,13 @@ invariant) and normalised by fixed scales, and every output is rotated back to t
   the reference frame, / ``SIZE_SCALE_M``, ``SIZE_SCALE_M``, 1, ``SPEED_SCALE_MPS``,
   ``SPEED_SCALE_MPS``, ``RATE_SCALE_RADPS``), cos/sin of the relative theta, parameters
   (m / ``MASS_SCALE_KG``, f / ``FRICTION_SCALE``, com_x, com_y / ``SIZE_SCALE_M``), half
-  extents (a1, a2) / ``SIZE_SCALE_M``, is_pull, node type one-hot (link, robot, table);
+  extents (a1, a2) / ``SIZE_SCALE_M``, the gap from the TCP to the link's footprint box
+  (:func:`box_gap_m`, capped at ``GAP_CAP_M``) / ``SIZE_SCALE_M``, is_pull, node type one-hot
+  (link, robot, table). The gap tells the nets whether the fingers touch the link: from the
+  relative pose and the size alone, small nets learn contact poorly and predict pushes that
+  never reach the object moving it;
 - robot node: the same layout with the TCP as the body (zero position, its yaw and twist),
-  zero parameters and size;
+  zero parameters, size and gap;
 - table node: the type one-hot only.
 
 The network's output per link is a normalised delta (dx, dy, dtheta, dvx, dvy, domega) in the
@@ -42,14 +46,15 @@ MASS_SCALE_KG = 1.0
 FRICTION_SCALE = 0.3
 JOINT_FRICTION_SCALE_NM = 0.5
 FORCE_SCALE_N = 2.0
+GAP_CAP_M = 0.05
 
 MOTION_DIM = 6
-NODE_DIM = 18
-"""motion 6, cos/sin 2, parameters 4, size 2, is_pull 1, type 3."""
+NODE_DIM = 19
+"""motion 6, cos/sin 2, parameters 4, size 2, gap 1, is_pull 1, type 3."""
 EDGE_DIM = 6
 """value (support: f_l, joint: f_j, robot: is_pull), type one-hot 3 (robot, joint, support),
 geometry 2 (joint: hinge minus receiver position, reference frame / SIZE_SCALE_M)."""
-LINK_FEATURE_DIM = 14
+LINK_FEATURE_DIM = 15
 ROBOT_FEATURE_DIM = 9
 
 _LINK, _ROBOT, _TABLE = 0, 1, 2
@@ -60,9 +65,9 @@ _OUTPUT_INIT_SCALE = 0.1
 _LINK_FEATURE_SCALES = (
     *(SIZE_SCALE_M, SIZE_SCALE_M, 1.0, SPEED_SCALE_MPS, SPEED_SCALE_MPS, RATE_SCALE_RADPS),
     *(1.0, 1.0, MASS_SCALE_KG, FRICTION_SCALE, SIZE_SCALE_M, SIZE_SCALE_M),
-    *(SIZE_SCALE_M, SIZE_SCALE_M),
+    *(SIZE_SCALE_M, SIZE_SCALE_M, SIZE_SCALE_M),
 )
-"""What each link feature is divided by (motion, cos/sin, parameters, size)."""
+"""What each link feature is divided by (motion, cos/sin, parameters, size, gap)."""
 _ROBOT_FEATURE_SCALES = (
     *(1.0, 1.0, 1.0, SPEED_SCALE_MPS, SPEED_SCALE_MPS, RATE_SCALE_RADPS),
     *(1.0, 1.0, 1.0),
@@ -167,6 +172,20 @@ def frame_turns(inputs: ProcessInput) -> tuple[Turn, Turn]:
     return Turn.of(-angle), Turn.of(angle)
 
 
+def box_gap_m(point_m: Tensor, half_extents_m: Tensor) -> Tensor:
+    """Distance of points [..., 2] outside an axis-aligned box centred at the origin with
+    half extents [..., 2]: [...] (m, 0 inside)."""
+    return torch.linalg.vector_norm((point_m.abs() - half_extents_m).clamp(min=0.0), dim=-1)
+
+
+def _tcp_gap_m(pose: Tensor, inputs: ProcessInput, size_m: Tensor) -> Tensor:
+    """Gap from the TCP to each link's footprint box, capped at ``GAP_CAP_M``: [..., C, L]
+    (pose [..., C, L, 6], size_m [..., C, L, 2])."""
+    tcp = inputs.tcp[..., None, None, :2]
+    local = rotate(tcp - pose[..., :2], -pose[..., 2])
+    return box_gap_m(local, size_m).clamp(max=GAP_CAP_M)
+
+
 def link_features(states: Tensor, inputs: ProcessInput, into: Turn | None = None) -> Tensor:
     """Per-link features in the reference frame: [..., C, L, LINK_FEATURE_DIM]. into: the
     first of :func:`frame_turns`."""
@@ -188,6 +207,7 @@ def link_features(states: Tensor, inputs: ProcessInput, into: Turn | None = None
             torch.stack([torch.cos(theta), torch.sin(theta)], -1),
             layout.link_parameters(states),
             size,
+            _tcp_gap_m(pose, inputs, size).unsqueeze(-1),
         ],
         -1,
     )
@@ -704,9 +724,10 @@ class GraphProcessNet(nn.Module):
         return torch.cat([features, tail.expand(*features.shape[:-1], 4)], -1)
 
     def _robot_node(self, inputs: ProcessInput) -> Tensor:
-        """[..., NODE_DIM]: motion 6, cos/sin 2, zero parameters 4 and size 2, is_pull, type."""
+        """[..., NODE_DIM]: motion 6, cos/sin 2, zero parameters 4, size 2 and gap 1, is_pull,
+        type."""
         robot = robot_features(inputs)
-        zeros = robot.new_zeros(*robot.shape[:-1], 6)
+        zeros = robot.new_zeros(*robot.shape[:-1], 7)
         return _node(torch.cat([robot[..., :8], zeros, robot[..., 8:9]], -1), _ROBOT)
 
 
@@ -717,7 +738,7 @@ class GraphProcessNet(nn.Module):
 class FeedForwardProcessNet(nn.Module):
     """The baseline: one 3-layer MLP over the concatenated features of a fixed number of links.
 
-    Input per sigma point: the link features [14 L], robot features [9], joint frictions / scale
+    Input per sigma point: the link features [15 L], robot features [9], joint frictions / scale
     [L - 1], joint positions relative to the TCP in the reference frame / SIZE_SCALE_M
     [2 (L - 1)] and the acted link one-hot [L]. Output: the normalised deltas [6 L] and the
     normalised force [2]. Process noise as in :class:`GraphProcessNet`.
