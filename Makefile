@@ -30,7 +30,7 @@ $(STAMP): pyproject.toml | system-libs
 	touch $(STAMP)
 
 # Look, fit the shape, then push until the belief converges (GNN trained by
-# `vistac train skills/collect_pushes.yaml --preset tiny`, on objects other than rect2).
+# `vistac train skills/collect_pushes.yaml --preset ship`, on objects other than rect2).
 demo: setup
 	$(BIN)/vistac run skills/explore_push.yaml --out $(DEMO_OUT) --overwrite
 

@@ -174,6 +174,7 @@ def test_tiny_training_gives_checkpoints_the_explore_skill_can_use(tmp_path: Pat
     report = json.loads((out / "train.json").read_text(encoding="utf-8"))
     history = report["push"]["gnn"]["history"]
     assert history[-1]["train"] < history[0]["train"], "training did not reduce the loss"
+    assert report["push"]["windows"]["missed"] > 0  # missed-push copies were trained on
     for name in ("gnn_push.pt", "ff_push.pt", "obs_noise_push.pt"):
         assert (out / name).stat().st_size < 2_000_000
         assert isinstance(torch.load(out / name, weights_only=True), dict)

@@ -29,7 +29,7 @@ def run(tmp_path: Path, skill: str, name: str, *overrides: str) -> dict[str, Any
 def test_goal_push_plans_executes_and_reports_the_error(tmp_path: Path) -> None:
     """One exploratory push, then one iCEM push; the summary reports the believed and the
     true distance to the goal. (How close the push gets depends on the process model: the
-    shipped tiny GNN is not accurate enough to promise progress in one push.)"""
+    shipped GNN is not accurate enough to promise progress in one push.)"""
     summary = run(
         tmp_path, "goal_push.yaml", "goal", FEW_VIEWS,
         "tree.sequence.1.repeat.max=1", "tree.sequence.2.repeat.max=1",

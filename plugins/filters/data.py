@@ -19,8 +19,10 @@ import torch
 from torch import Tensor
 from vistac.errors import DataError
 from vistac.objects import (
+    LinkSpec,
     ObjectSpec,
     link_frames,
+    points_inside,
     prism_distance_m,
     prism_surface_points,
     to_link_frame,
@@ -33,6 +35,10 @@ log = logging.getLogger(__name__)
 
 CLOUD_POINTS = 2000
 """Points of the object cloud the depth projector moves with the links."""
+MISS_MARGIN_M = 0.02
+"""How far a missed push's TCP stays from the object (:func:`missed_push`)."""
+_PAD_HALF_WIDTH_M = 0.012
+"""Half the width of the finger pad across the push (the simulated gripper's)."""
 
 
 @dataclass(frozen=True)
@@ -158,6 +164,68 @@ def load_trajectories(roots: list[Path], kind: str | None = None) -> list[Trajec
             if trajectory is not None and (kind is None or trajectory.kind == kind):
                 trajectories.append(replace(trajectory, link=acted_link(trajectory)))
     return trajectories
+
+
+def missed_push(
+    trajectory: Trajectory, lateral: bool, margin_m: float = MISS_MARGIN_M
+) -> Trajectory | None:
+    """The same push with its TCP path moved so that the fingers pass the object by: back
+    along -pd by the path's own length plus ``margin_m`` (it ends short of where it began), or
+    (``lateral``) across pd beyond the whole object. The object stays at rest where it was and
+    the fingers feel no force, which is what such a push does. None for a path that still
+    comes within ``margin_m`` of a link (at the links' start poses: back-shifted paths of a
+    push from between two links can).
+
+    Training on these teaches the learned models that a push moves the object only in
+    contact: the recorded pushes all start 1 cm short of the object and reach it.
+    """
+    direction = np.array([np.cos(trajectory.pd_rad), np.sin(trajectory.pd_rad)])
+    path = trajectory.tcp[:, :2]
+    if lateral:
+        across = np.array([-direction[1], direction[0]])
+        corners = np.concatenate(
+            [to_world_xy(np.pad(link.polygon(), ((0, 0), (0, 1))), pose)[:, :2]
+             for link, pose in zip(trajectory.spec.links, trajectory.poses[0], strict=True)]
+        )  # fmt: skip
+        side = (corners - path[0]) @ across
+        offset = (np.abs(side).max() + _PAD_HALF_WIDTH_M + margin_m) * across
+    else:
+        travel_m = float(np.linalg.norm(path[-1] - path[0]))
+        offset = -(travel_m + margin_m) * direction
+    tcp = trajectory.tcp.copy()
+    tcp[:, :2] += offset
+    if min(_path_gap_m(tcp[:, :2], link, pose)
+           for link, pose in zip(trajectory.spec.links, trajectory.poses[0], strict=True)
+           ) < margin_m:  # fmt: skip
+        return None
+    return replace(
+        trajectory,
+        source=f"{trajectory.source} (missed)",
+        poses=np.repeat(trajectory.poses[:1], trajectory.steps, axis=0),
+        twists=np.zeros_like(trajectory.twists),
+        tcp=tcp,
+        force_n=np.zeros_like(trajectory.force_n),
+        depth_m=None,
+        camera_pose=None,
+    )
+
+
+def _path_gap_m(path_m: FloatArray, link: LinkSpec, pose: FloatArray) -> float:
+    """Least distance (m) of the points [T, 2] to the footprint of ``link`` at pose [3]
+    (0 inside it)."""
+    local = to_link_frame(np.column_stack([path_m, np.full(len(path_m), link.height_m / 2)]),
+                          pose)  # fmt: skip
+    polygon = link.polygon()
+    gap_m = prism_distance_m(local, polygon, link.height_m)
+    return float(np.where(points_inside(polygon, local[:, :2]), 0.0, gap_m).min())
+
+
+def missed_pushes(trajectories: list[Trajectory]) -> list[Trajectory]:
+    """One :func:`missed_push` per push, moved back and across in turn (those that would
+    touch a link left out)."""
+    pushes = [t for t in trajectories if t.kind == "push"]
+    missed = [missed_push(t, lateral=bool(k % 2)) for k, t in enumerate(pushes)]
+    return [t for t in missed if t is not None]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -5,6 +5,8 @@
 2. Process model (per interaction type and model): open-loop rollouts of ``rollout_steps``
    from the true state, loss = Gaussian NLL of the true next pose under the predicted mean
    and learned process noise + MSE of the mean + NLL of the measured finger force (IV-B2).
+   With ``missed_pushes``, each recorded push also goes in moved to miss the object
+   (:func:`vistac.plugins.filters.data.missed_push`).
 3. Observation noise: ObsNoiseNet by the NLL of the measured depth image and force around
    the image projected at the true pose (the observation-noise term of IV-B2).
 4. End to end: ``filter_epochs`` passes through the dual filter on windows of a third of a
@@ -38,6 +40,7 @@ from vistac.plugins.filters.data import (
     Trajectory,
     describe,
     load_trajectories,
+    missed_pushes,
     object_cloud,
     process_inputs,
     stack_equal_length,
@@ -93,6 +96,11 @@ class TrainConfig(BaseModel):
     patience: int = Field(
         default=5, gt=0, description="epochs without validation gain before stopping"
     )
+    missed_pushes: bool = Field(
+        default=True,
+        description="also train the process models on each recorded push moved to miss the "
+        "object (it stays at rest): they learn that only contact moves it",
+    )
     seed: int = 0
 
 
@@ -105,8 +113,8 @@ PRESETS: dict[str, TrainConfig] = {
     ),
     "ship": TrainConfig(
         models=("gnn",), collect_overrides=("tree.sequence.0.repeat.max=8",), hidden=32,
-        epochs=40, noise_epochs=3, filter_epochs=1, filter_sigma_points=16,
-        filter_windows=8, batch_size=8, patience=8,
+        epochs=60, noise_epochs=3, filter_epochs=1, filter_sigma_points=16,
+        filter_windows=8, batch_size=8, patience=15,
     ),
     "paper": TrainConfig(objects="generated", runs_per_object=1, epochs=60, patience=8),
 }  # fmt: skip
@@ -406,6 +414,9 @@ def train_interaction(
         split: stack_equal_length([t for t in trajs if t.kind == kind], window_steps(trajs))
         for split, trajs in data.items()
     }
+    if config.missed_pushes:
+        missed = missed_pushes([t for t in data["train"] if t.kind == kind])
+        windows["missed"] = stack_equal_length(missed, window_steps(data["train"]))
     if not windows["train"] or not windows["val"]:
         raise DataError(f"no {kind} trajectories in the train or validation data")
     rng = np.random.default_rng(config.seed)
@@ -469,7 +480,7 @@ def _train_model(
     start_s = time.perf_counter()
 
     def train() -> Iterator[Tensor]:
-        for batch in batches(windows["train"], config.batch_size, rng):
+        for batch in batches(windows["train"] + windows.get("missed", []), config.batch_size, rng):
             yield rollout_loss(model, batch, config.rollout_steps)
 
     def val() -> float:
