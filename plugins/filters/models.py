@@ -113,7 +113,8 @@ def load_checkpoint(net: nn.Module, path: Path, plugin: str, architecture: dict[
     if problems:
         raise DataError(
             f"{path} does not fit {plugin} with {architecture} ({'; '.join(problems)}); "
-            f"check `hidden`/`n_links` in the skill, or {_TRAIN_HINT}"
+            f"check `hidden`/`n_links` in the skill (a checkpoint saved by an older vistac, "
+            f"whose net inputs differ, must be retrained), or {_TRAIN_HINT}"
         )
     net.load_state_dict(state)
     log.info("loaded %s weights from %s", plugin, path)

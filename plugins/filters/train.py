@@ -414,9 +414,10 @@ def train_interaction(
         split: stack_equal_length([t for t in trajs if t.kind == kind], window_steps(trajs))
         for split, trajs in data.items()
     }
-    if config.missed_pushes:
-        missed = missed_pushes([t for t in data["train"] if t.kind == kind])
-        windows["missed"] = stack_equal_length(missed, window_steps(data["train"]))
+    if config.missed_pushes and kind == "push":
+        windows["missed"] = stack_equal_length(
+            missed_pushes(data["train"]), window_steps(data["train"])
+        )
     if not windows["train"] or not windows["val"]:
         raise DataError(f"no {kind} trajectories in the train or validation data")
     rng = np.random.default_rng(config.seed)
