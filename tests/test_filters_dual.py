@@ -19,6 +19,7 @@ from vistac.plugins.filters.dual import (
     liu_west,
     project_feasible,
     sample_sigma_points,
+    standardise_noise,
     unscented_points,
     weighted_moments,
     woodbury_update,
@@ -264,8 +265,41 @@ def test_infeasible_points_never_reach_the_model_but_count_in_the_moments() -> N
     moments = weighted_moments(sigma_pred, uniform)
     torch.testing.assert_close(belief_pred.mean, moments[0], rtol=0, atol=1e-14)
     torch.testing.assert_close(belief_pred.cov, moments[1], rtol=0, atol=1e-14)
-    parameter_std = belief_pred.cov.diagonal()[6:].sqrt()
-    torch.testing.assert_close(parameter_std, torch.full_like(parameter_std, 0.1), rtol=0.1, atol=0)
+    # The predicted parameter moments are the belief's, exactly (static parameters).
+    torch.testing.assert_close(belief_pred.mean[6:], belief.mean[6:], rtol=0, atol=1e-14)
+    torch.testing.assert_close(belief_pred.cov[6:, 6:], belief.cov[6:, 6:], rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("sigma_points", [16, 100])
+def test_an_uninformative_observation_keeps_the_parameter_belief_for_500_steps(
+    sigma_points: int,
+) -> None:
+    """Weights 1/C leave the parameters where they were: raw draws would move the mean by
+    their sample error and shrink the covariance by 1 - 1/C per step on average (a collapse
+    within a few hundred steps)."""
+
+    class Uninformative(LinearObservation):
+        def expected(self, states: Tensor, force_n: Tensor) -> Tensor:
+            return torch.zeros(*states.shape[:-1], 5, dtype=DTYPE)
+
+    dual = DualFilter(LAYOUT, LinearProcess(), Uninformative(), sigma_points)
+    generator = torch.Generator().manual_seed(3)
+    belief, inputs = prior_belief(), make_inputs()
+    for _ in range(500):
+        belief = dual.step(belief, inputs, DT_S, torch.zeros(5, dtype=DTYPE), generator)
+    torch.testing.assert_close(belief.mean[6:], as_tensor(PRIOR_MEAN[6:]), rtol=0, atol=1e-9)
+    # (plus the parameter_var_floor of 1e-12 per step)
+    torch.testing.assert_close(belief.cov[6:, 6:], prior_belief().cov[6:, 6:], rtol=0, atol=1e-9)
+
+
+def test_standardised_noise_has_zero_mean_and_unit_covariance_when_it_can() -> None:
+    draws = torch.randn(3, 50, 10, generator=torch.Generator().manual_seed(1), dtype=DTYPE)
+    noise = standardise_noise(draws)
+    mean, cov = weighted_moments(noise, torch.full((3, 50), 1 / 50, dtype=DTYPE))
+    torch.testing.assert_close(mean, torch.zeros(3, 10, dtype=DTYPE), rtol=0, atol=1e-13)
+    torch.testing.assert_close(cov, torch.eye(10, dtype=DTYPE).expand(3, -1, -1), rtol=0, atol=1e-12)
+    few = draws[:, :8]  # C = 8 draws cannot span 10 dimensions
+    torch.testing.assert_close(standardise_noise(few), few, rtol=0, atol=0)
 
 
 def test_projection_lands_on_the_feasible_set() -> None:
