@@ -20,7 +20,7 @@ class SimGripper(Component):
     kind = "gripper"
 
     class Config(ComponentConfig):
-        still_speed_mps: float = Field(default=0.002, gt=0.0)
+        still_speed_mps: float = Field(default=0.005, gt=0.0)
         contact_width_m: float = Field(default=0.004, gt=0.0)
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
