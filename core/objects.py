@@ -13,7 +13,9 @@ leaves can turn. An articulated object's hinge (axis z) sits in the middle of th
 
 from __future__ import annotations
 
+import itertools
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -454,6 +456,14 @@ def split_configurations(
         split["test"] += order[n_val : n_val + n_test]
         split["train"] += order[n_val + n_test :]
     return split
+
+
+def interleave_types(paths: Sequence[Path]) -> list[Path]:
+    """Object files in turns of their type (homogeneous, heterogeneous, articulated), each type
+    in its given order, so that the first N of them cover every type."""
+    by_type = {kind: [p for p in paths if load_object(p).type == kind] for kind in OBJECT_TYPES}
+    turns = itertools.zip_longest(*by_type.values())
+    return [path for turn in turns for path in turn if path is not None]
 
 
 def write_configurations(seed: int, out_dir: str | Path) -> dict[str, list[str]]:

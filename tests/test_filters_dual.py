@@ -297,7 +297,8 @@ def test_standardised_noise_has_zero_mean_and_unit_covariance_when_it_can() -> N
     noise = standardise_noise(draws)
     mean, cov = weighted_moments(noise, torch.full((3, 50), 1 / 50, dtype=DTYPE))
     torch.testing.assert_close(mean, torch.zeros(3, 10, dtype=DTYPE), rtol=0, atol=1e-13)
-    torch.testing.assert_close(cov, torch.eye(10, dtype=DTYPE).expand(3, -1, -1), rtol=0, atol=1e-12)
+    eye = torch.eye(10, dtype=DTYPE).expand(3, -1, -1)
+    torch.testing.assert_close(cov, eye, rtol=0, atol=1e-12)
     few = draws[:, :8]  # C = 8 draws cannot span 10 dimensions
     torch.testing.assert_close(standardise_noise(few), few, rtol=0, atol=0)
 

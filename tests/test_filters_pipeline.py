@@ -15,7 +15,7 @@ from vistac.objects import load_object
 from vistac.plugins.filters.component import DualFilterComponent, nearest_link, relative_poses
 from vistac.plugins.filters.data import link_geometry, unwrapped_twist
 from vistac.plugins.filters.state import StateLayout
-from vistac.plugins.filters.train import TrainConfig, fit
+from vistac.plugins.filters.train import TrainConfig, fit, object_files
 from vistac.protocols import Filter, Scene
 from vistac.testing import build_components, check_component_class
 from vistac.types import PointCloud, ShapeEstimate, Superquadric
@@ -157,6 +157,16 @@ def test_a_corrupt_checkpoint_is_a_clear_error(tmp_path: Path) -> None:
     assert result.returncode != 0
     assert "bad.pt" in result.stderr and "vistac train" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_generated_objects_capped_per_split_keep_every_type(tmp_path: Path) -> None:
+    files = object_files(TrainConfig(objects="generated", max_objects=4), SKILLS, tmp_path)
+    for split in ("train", "val"):
+        specs = [load_object(path) for path in files[split]]  # real files under tmp_path
+        assert len(specs) == 4
+        assert [spec.type for spec in specs[:3]] == ["homogeneous", "heterogeneous", "articulated"]
+    everything = object_files(TrainConfig(objects="generated"), SKILLS, tmp_path)
+    assert (len(everything["train"]), len(everything["val"])) == (96, 12)
 
 
 def test_an_unknown_preset_is_a_clear_error(tmp_path: Path) -> None:

@@ -48,6 +48,7 @@ from vistac.objects import (
     OBJECT_TYPES,
     ObjectSpec,
     generate_configurations,
+    interleave_types,
     load_object,
     write_configurations,
 )
@@ -431,7 +432,7 @@ def select_objects(selection: Sequence[str], out: Path, max_objects: int | None)
     for item in selection:
         if item in SPLITS:
             split = split or write_configurations(OBJECT_SET_SEED, out / "objects")
-            paths += _interleaved([out / "objects" / f"{name}.yaml" for name in split[item]])
+            paths += interleave_types([out / "objects" / f"{name}.yaml" for name in split[item]])
         else:
             path = Path(item)
             if not path.is_file():
@@ -442,12 +443,6 @@ def select_objects(selection: Sequence[str], out: Path, max_objects: int | None)
             paths.append(path.resolve())
     paths = list(dict.fromkeys(paths))
     return paths[:max_objects] if max_objects else paths
-
-
-def _interleaved(paths: list[Path]) -> list[Path]:
-    by_type = {kind: [p for p in paths if load_object(p).type == kind] for kind in OBJECT_TYPES}
-    ordered = itertools.zip_longest(*by_type.values())
-    return [path for group in ordered for path in group if path is not None]
 
 
 def _architecture(checkpoint: Path) -> dict[str, int]:

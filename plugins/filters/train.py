@@ -34,7 +34,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 from vistac.errors import ConfigError, DataError
-from vistac.objects import link_frames, load_object, write_configurations
+from vistac.objects import interleave_types, link_frames, load_object, write_configurations
 from vistac.plugins.filters.component import Prior, prior_belief
 from vistac.plugins.filters.data import (
     Trajectory,
@@ -112,9 +112,9 @@ PRESETS: dict[str, TrainConfig] = {
         filter_sigma_points=16, filter_windows=4, batch_size=8,
     ),
     "ship": TrainConfig(
-        models=("gnn",), collect_overrides=("tree.sequence.0.repeat.max=8",), hidden=32,
-        epochs=60, noise_epochs=3, filter_epochs=1, filter_sigma_points=16,
-        filter_windows=8, batch_size=8, patience=15,
+        objects="generated", models=("gnn",), hidden=32,
+        collect_overrides=("tree.sequence.0.repeat.max=8",), epochs=60, noise_epochs=3,
+        filter_epochs=1, filter_sigma_points=16, filter_windows=8, batch_size=16, patience=15,
     ),
     "paper": TrainConfig(objects="generated", runs_per_object=1, epochs=60, patience=8),
 }  # fmt: skip
@@ -145,32 +145,23 @@ def load_preset(name: str) -> TrainConfig:
 def object_files(config: TrainConfig, skill_dir: Path, out_dir: Path) -> dict[str, list[Path]]:
     """Train and validation object files of the preset."""
     if config.objects == "generated":
-        split = write_configurations(config.seed, out_dir / "objects")
-        files = {k: [Path(p) for p in split[k]] for k in ("train", "val")}
+        folder = out_dir / "objects"
+        split = write_configurations(config.seed, folder)
+        files = {k: [folder / f"{name}.yaml" for name in split[k]] for k in ("train", "val")}
     else:
         folder = skill_dir / "objects"
         files = {
             "train": [folder / f"{name}.yaml" for name in config.shipped_train],
             "val": [folder / f"{name}.yaml" for name in config.shipped_val],
         }
-    cap = config.max_objects
-    return {split: paths[:cap] if cap else paths for split, paths in files.items()}
-
-
-def _keep_partial_run(obj: Path, run_dir: Path) -> None:
-    """A collection run that stopped early (the object pushed out of reach, say) keeps the
-    episodes it recorded; one with none is an error."""
-    episodes = sorted((run_dir / "episodes").glob("*/data.npz"))
-    if not episodes:
-        raise DataError(f"collection failed on {obj} before any episode; see {run_dir}")
-    log.warning(
-        "collection on %s stopped early (see %s); keeping its %d episodes",
-        obj.name, run_dir, len(episodes),
-    )  # fmt: skip
+    if config.max_objects is None:
+        return files
+    return {split: interleave_types(paths)[: config.max_objects] for split, paths in files.items()}
 
 
 def collect(skill: Path, objects: list[Path], out_dir: Path, config: TrainConfig) -> list[Path]:
-    """Run the collection skill on every object; returns the run folders."""
+    """Run the collection skill on every object; returns the folders of the runs that recorded
+    an episode (a DataError when none did)."""
     from vistac.cli import main
 
     runs = []
@@ -185,9 +176,15 @@ def collect(skill: Path, objects: list[Path], out_dir: Path, config: TrainConfig
                 for override in config.collect_overrides:
                     args += ["--set", override]
                 if main(args) != 0:
-                    _keep_partial_run(obj, run_dir)
+                    log.warning("collection on %s stopped early; see %s", obj.name, run_dir)
+            if not any((run_dir / "episodes").glob("*/data.npz")):
+                log.warning("%s: no episode recorded, %s skipped", run_dir, obj.name)
+                continue
             runs.append(run_dir)
             log.info("collected %s", run_dir)
+    if not runs:
+        names = ", ".join(obj.stem for obj in objects[:4]) + (", ..." if len(objects) > 4 else "")
+        raise DataError(f"collection recorded no episode on {names}; see the runs in {out_dir}")
     return runs
 
 
