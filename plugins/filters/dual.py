@@ -4,7 +4,9 @@ The belief over the joint state ``s = (psi, phi)`` (pose/twist block, then param
 ``state.StateLayout``) is one Gaussian. A step has two halves:
 
 - **Predict** (eq. 21-26): C Monte-Carlo sigma points ``mu + L eps`` (``L`` the Cholesky
-  factor). Points that break the physical constraints reach the process model as a projected
+  factor), the draws ``eps`` standardised to sample mean 0 and covariance I so that the points'
+  moments are the belief's (the paper's raw draws make static parameters drift and collapse
+  by the sample error, step after step; see ``standardise_noise``). Points that break the physical constraints reach the process model as a projected
   (clamped) copy, but every point keeps its own unprojected parameters in the moments, so the
   parameter variance is preserved. Parameters stay constant (eq. 23), the process noise is
   added by reparameterisation (eq. 24), and the moments use weights 1/C (eq. 25-26).
