@@ -13,12 +13,14 @@ from vistac.cli import main
 from vistac.objects import generate_configurations, object_from_dict
 from vistac.plugins.filters.evaluate import (
     EvalOptions,
+    calibration_table,
     chosen_variants,
     match_links,
     nrmse,
     nrmse_by_interaction,
     nrmse_rows,
     nrmse_tables,
+    normalised_errors,
     parameter_pairs,
     parameter_ranges,
     parse_variants,
@@ -299,6 +301,17 @@ def _record(
     }  # fmt: skip
 
 
+def test_normalised_errors_are_in_stds_of_the_matched_link() -> None:
+    belief = {
+        "m_0": {"mean": 1.2, "std": 0.1}, "f_0": {"mean": 0.3, "std": 0.05},
+        "com_x_0": {"mean": 0.01, "std": 0.01}, "com_y_0": {"mean": 0.0, "std": 0.0},
+        "f_j_0": {"mean": 0.1, "std": 0.05},
+    }  # fmt: skip
+    truth = {"m_1": 1.0, "f_1": 0.4, "com_x_1": 0.0, "com_y_1": 0.0, "f_j_0": 0.2}
+    z = normalised_errors(belief, truth, {0: 1})  # com_y has no std: left out
+    assert z == pytest.approx([2.0, -2.0, 1.0, -2.0])
+
+
 def test_tables_have_one_column_per_variant() -> None:
     labels = ["A-GNN", "U-GNN", "R-GNN", "A-FF", "A-Analytical"]
     records = [_record(label, 1.0 + 0.14 * i, 0.001 * (i + 1)) for i, label in enumerate(labels)]
@@ -315,6 +328,14 @@ def test_tables_have_one_column_per_variant() -> None:
     assert "| parameter | A-GNN | U-GNN | R-GNN | A-FF | A-Analytical |" in markdown
     assert "| m_0 | 0.000 | 0.100 | 0.200 | 0.300 | 0.400 |" in markdown
     assert "| homogeneous | GNN-fixed | 10.000 | 0.000 | 1 |" in markdown
+    for record, z in zip(records, ([0.5, -1.0], [3.0, 1.5], [-2.5, 0.0]), strict=False):
+        record["normalised_errors"] = z
+    for record in records[3:]:
+        record["normalised_errors"] = []
+    calibration = calibration_table(records)
+    assert list(calibration) == ["A-GNN", "U-GNN", "R-GNN"]  # (GNN-fixed estimates nothing)
+    assert calibration["U-GNN"] == {"within_2_std": 0.5, "median_abs_z": 2.25, "entries": 2.0}
+    assert "| R-GNN | 0.500 | 1.250 | 2 |" in tables_markdown(tables, tracking, calibration)
     curves = nrmse_by_interaction(records, RANGES, [*labels, "GNN-fixed"])
     assert curves["R-GNN"] == pytest.approx([0.1])
     assert curves["GNN-fixed"] == pytest.approx([0.5 / 1.4])  # m error 1.0 / 1.4, f error 0

@@ -182,6 +182,22 @@ def parameter_pairs(
     return pairs
 
 
+def normalised_errors(
+    belief: dict[str, dict[str, float]], truth: dict[str, float], links: dict[int, int]
+) -> list[float]:
+    """``(estimate - truth) / std`` of m, f, com_x and com_y per matched link (``links``: belief
+    to true link) and of every joint friction: an honest belief has about 95 % of them within
+    +-2."""
+    names = [(f"{key}_{b}", f"{key}_{t}") for b, t in links.items()
+             for key in ("m", "f", "com_x", "com_y")]  # fmt: skip
+    names += [(name, name) for name in truth if name.startswith("f_j_")]
+    return [
+        (belief[ours]["mean"] - truth[theirs]) / belief[ours]["std"]
+        for ours, theirs in names
+        if ours in belief and theirs in truth and belief[ours]["std"] > 0
+    ]
+
+
 def nrmse(pairs: Sequence[tuple[float, float]], value_range: float) -> float:
     """RMSE of (estimate - truth) over ``pairs`` divided by ``value_range``; NaN if empty."""
     if not pairs or not value_range > 0:
@@ -561,6 +577,7 @@ def score_run(run_dir: Path) -> dict[str, Any]:
         "belief_links": _n_belief_links(summary.get("belief") or {}),
         "interactions": len(summary.get("episodes", [])),
         "parameters": parameter_pairs(summary.get("belief") or {}, truth, links),
+        "normalised_errors": normalised_errors(summary.get("belief") or {}, truth, links),
         "history": history,
         "tracking": tracking_errors(run_dir, summary, links),
     }
@@ -638,6 +655,18 @@ def tracking_table(records: Sequence[dict[str, Any]]) -> dict[str, dict[str, dic
     return table
 
 
+def calibration_table(records: Sequence[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """{variant: share of final normalised errors within +-2 std, their median |z|, count} for
+    the variants that estimate parameters."""
+    table: dict[str, dict[str, float]] = {}
+    for variant in dict.fromkeys(r["variant"] for r in records if r["estimate_parameters"]):
+        z = np.abs([e for r in _scored(records, variant) for e in r["normalised_errors"]])
+        if z.size:
+            table[variant] = {"within_2_std": float(np.mean(z <= 2.0)),
+                              "median_abs_z": float(np.median(z)), "entries": float(z.size)}
+    return table
+
+
 # ---------------------------------------------------------------------------------------------
 # Reports
 
@@ -649,6 +678,7 @@ def _fmt(value: float) -> str:
 def tables_markdown(
     tables: dict[str, dict[str, dict[str, dict[str, float]]]],
     tracking: dict[str, dict[str, dict[str, float]]],
+    calibration: dict[str, dict[str, float]] | None = None,
 ) -> str:
     """Markdown NRMSE tables (one per object type and interaction) and the tracking table."""
     lines = ["# Parameter NRMSE (RMSE / range over the object set)", ""]
@@ -677,6 +707,12 @@ def tables_markdown(
                 f"| {kind_type} | {variant} | {_fmt(values['position_m'] * 1000)} | "
                 f"{_fmt(math.degrees(values['angle_rad']))} | {values['runs']:.0f} |"
             ]
+    lines += ["", "# Calibration ((estimate - truth) / std of the final m, f, CoM x/y, f_j)", ""]
+    lines += ["| variant | within 2 std (0.95 if honest) | median abs | entries |",
+              "|---|---:|---:|---:|"]  # fmt: skip
+    for variant, values in (calibration or {}).items():
+        lines += [f"| {variant} | {_fmt(values['within_2_std'])} | "
+                  f"{_fmt(values['median_abs_z'])} | {values['entries']:.0f} |"]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
@@ -777,6 +813,7 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
         ),
         "nrmse_vs_interactions": nrmse_by_interaction(records, ranges, labels),
         "tracking": tracking_table(records),
+        "calibration": calibration_table(records),
         "runs": records,
     }  # fmt: skip
     _write_reports(report, options.out)
@@ -786,12 +823,12 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
 def _write_reports(report: dict[str, Any], out: Path) -> None:
     (out / "eval.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
     (out / "tables.json").write_text(
-        json.dumps({key: report[key] for key in ("ranges", "tables", "tracking",
+        json.dumps({key: report[key] for key in ("ranges", "tables", "tracking", "calibration",
                                                    "nrmse_vs_interactions")}, indent=2),
         encoding="utf-8",
     )  # fmt: skip
-    (out / "tables.md").write_text(tables_markdown(report["tables"], report["tracking"]),
-                                   encoding="utf-8")  # fmt: skip
+    markdown = tables_markdown(report["tables"], report["tracking"], report["calibration"])
+    (out / "tables.md").write_text(markdown, encoding="utf-8")
     plot_curves(report["nrmse_vs_interactions"], out / "nrmse_vs_interactions.png")
     for record in report["runs"]:
         if record["status"] == "ok":
