@@ -17,6 +17,7 @@ from vistac.plugins.filters.dual import (
     cholesky_safe,
     feasible,
     liu_west,
+    parameter_regression,
     project_feasible,
     sample_sigma_points,
     standardise_noise,
@@ -445,6 +446,25 @@ def test_invalid_settings_are_rejected() -> None:
         DualFilter(LAYOUT, LinearProcess(), LinearObservation(), liu_west_delta=0.2)
     with pytest.raises(ValueError, match="ukf_kappa"):
         DualFilter(LAYOUT, LinearProcess(), LinearObservation(), ukf_kappa=-3.0)
+    with pytest.raises(ValueError, match="evidence_scale"):
+        DualFilter(LAYOUT, LinearProcess(), LinearObservation(), evidence_scale=0.0)
+
+
+def test_a_smaller_evidence_scale_learns_the_parameters_more_slowly() -> None:
+    """A power likelihood: with 1/10 of the evidence per step the parameter variance after 30
+    steps lies between the full-evidence posterior's and the prior's."""
+    system = joint_system()
+    observations = simulate(system, 30, seed=2)
+
+    def parameter_var(scale: float) -> Tensor:
+        dual = DualFilter(LAYOUT, LinearProcess(), LinearObservation(), 200, evidence_scale=scale)
+        generator, belief = torch.Generator().manual_seed(0), prior_belief()
+        for observation in observations:
+            belief = dual.step(belief, make_inputs(), DT_S, as_tensor(observation), generator)
+        return belief.cov.diagonal()[6:]
+
+    full, tenth, prior = parameter_var(1.0), parameter_var(0.1), prior_belief().cov.diagonal()[6:]
+    assert bool((full < tenth).all() and (tenth < prior).all())
 
 
 def test_tempering_keeps_the_effective_sample_size() -> None:
@@ -516,8 +536,6 @@ def test_likelihoods_from_squared_residuals_equal_the_plain_formulas() -> None:
     from vistac.plugins.filters.dual import (
         modality_log_likelihoods,
         observation_log_likelihood,
-        spread_var,
-        squared_residuals,
     )
 
     expected, observation, noise_var = residual_case(0)
@@ -530,11 +548,23 @@ def test_likelihoods_from_squared_residuals_equal_the_plain_formulas() -> None:
     torch.testing.assert_close(
         modality_log_likelihoods(expected, observation, noise_var, 2), torch.stack(plain, -1)
     )
-    squared = squared_residuals(expected, observation)
-    spread = spread_var(expected.mean(-2) - observation, squared)
-    # zero spread comes out as rounding (~1e-17) against R ~ 1e-4: never negative
-    torch.testing.assert_close(spread, expected.var(-2), rtol=1e-9, atol=1e-15)
-    assert bool((spread[..., :10] >= 0).all())
+
+
+def test_parameter_regression_recovers_a_linear_observation_and_its_scatter() -> None:
+    """Expected observations = linear in the parameters + a scatter orthogonal to them: the fit
+    is the linear part and the residual variance the scatter's (C - p - 1 dof)."""
+    generator = torch.Generator().manual_seed(4)
+    parameters = torch.randn(2, 30, 4, generator=generator, dtype=DTYPE)
+    linear = 0.5 + parameters @ torch.randn(4, 50, generator=generator, dtype=DTYPE)
+    design = torch.cat([torch.ones(2, 30, 1, dtype=DTYPE), parameters], -1)
+    scatter = torch.randn(2, 30, 50, generator=generator, dtype=DTYPE)
+    scatter -= design @ torch.linalg.lstsq(design, scatter).solution  # orthogonal to the design
+    fitted, residual_var = parameter_regression(parameters, linear + scatter)
+    torch.testing.assert_close(fitted, linear, rtol=0, atol=1e-7)  # (the ridge)
+    torch.testing.assert_close(residual_var, scatter.square().sum(-2) / 25, rtol=1e-6, atol=0)
+    same = parameters[..., :1].expand(2, 30, 4)  # a degenerate block stays solvable
+    fitted, residual_var = parameter_regression(same, linear)
+    assert bool(torch.isfinite(fitted).all() and (residual_var >= 0).all())
 
 
 def test_consumed_expected_observations_give_the_same_update() -> None:

@@ -15,7 +15,7 @@ from vistac.objects import load_object
 from vistac.plugins.filters.component import DualFilterComponent, nearest_link, relative_poses
 from vistac.plugins.filters.data import link_geometry, unwrapped_twist
 from vistac.plugins.filters.state import StateLayout
-from vistac.plugins.filters.train import TrainConfig, fit, object_files
+from vistac.plugins.filters.train import TrainConfig, correlation_steps, fit, object_files
 from vistac.protocols import Filter, Scene
 from vistac.testing import build_components, check_component_class
 from vistac.types import PointCloud, ShapeEstimate, Superquadric
@@ -85,6 +85,30 @@ def test_fit_keeps_the_best_epoch_and_never_a_worse_model_than_the_start() -> No
     assert 0.4 < kept < 0.6  # Adam: about 0.1 per step; the last epoch is the best
     kept, epochs = _fit_quadratic(train_target=1.0, val_target=-1.0)
     assert kept == 0.0 and epochs == 2  # every epoch moved away: the start is kept
+
+
+def test_correlation_steps_of_known_error_sequences() -> None:
+    constant = torch.full((40, 2), 0.3, dtype=torch.float64)  # a bias: one observation
+    assert correlation_steps([constant]) == pytest.approx(40.0)
+    alternating = torch.tensor([[1.0], [-1.0]] * 20, dtype=torch.float64)
+    assert correlation_steps([alternating]) == 1.0  # rho_1 < 0: nothing summed
+    white = torch.randn(200, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    assert 0.7 < correlation_steps([white, white.flip(0)]) < 1.6
+
+
+def test_the_filter_counts_the_noise_checkpoints_evidence_steps(tmp_path: Path) -> None:
+    from vistac.plugins.filters.observation import ObsNoiseNet
+
+    noise = ObsNoiseNet()
+    noise.evidence_steps.fill_(25.0)
+    torch.save(noise.state_dict(), tmp_path / "noise.pt")
+    settings: dict[str, Any] = {"noise_checkpoint": str(tmp_path / "noise.pt")}
+    specs = {"model": {"plugin": "filters.analytical"},
+             "filter": {"plugin": "filters.dual", "with": settings}}  # fmt: skip
+    assert build_components(specs, tmp_path).component("filter").evidence_scale == 1 / 25
+    settings["evidence_steps"] = 5.0  # the skill's setting wins
+    assert build_components(specs, tmp_path).component("filter").evidence_scale == 1 / 5
+    assert _filter(tmp_path, {"plugin": "filters.analytical"}).evidence_scale == 1.0  # untrained
 
 
 def test_filters_dual_is_a_filter_component(tmp_path: Path) -> None:
@@ -183,7 +207,7 @@ def test_tiny_training_gives_checkpoints_the_explore_skill_can_use(tmp_path: Pat
     assert result.returncode == 0, result.stderr
     report = json.loads((out / "train.json").read_text(encoding="utf-8"))
     history = report["push"]["gnn"]["history"]
-    assert history[-1]["train"] < history[0]["train"], "training did not reduce the loss"
+    assert history[-1]["val"] < history[0]["val"], "training did not reduce the validation loss"
     assert report["push"]["windows"]["missed"] > 0  # missed-push copies were trained on
     for name in ("gnn_push.pt", "ff_push.pt", "obs_noise_push.pt"):
         assert (out / name).stat().st_size < 2_000_000

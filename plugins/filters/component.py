@@ -206,6 +206,11 @@ class DualFilterComponent(Component):
         occlusion_margin_m: float | None = Field(
             0.01, gt=0, description="ignore pixels this much nearer than any projection (gripper)"
         )
+        evidence_steps: float | None = Field(
+            None, ge=1, description="steps of an interaction that count as one independent "
+            "observation of the parameters; None: the noise checkpoint's (the process model's "
+            "force-error autocorrelation time, measured by `vistac train`)",
+        )
         between_episodes_std_m: float = Field(
             0.002, ge=0, description="pose std added between interactions (m, and rad / 10)"
         )
@@ -480,7 +485,15 @@ class DualFilterComponent(Component):
         return DualFilter(
             self.layout, self.model, observation, config.sigma_points, config.liu_west_delta,
             min_ess_fraction=config.min_ess_fraction, pose_std_floor=config.pose_std_floor,
+            evidence_scale=self.evidence_scale,
         )  # fmt: skip
+
+    @property
+    def evidence_scale(self) -> float:
+        """1 / the steps of an interaction that count as one independent observation (the
+        config's ``evidence_steps``, else the noise checkpoint's)."""
+        steps = self.config.evidence_steps or float(self.noise_net.evidence_steps)
+        return 1.0 / max(steps, 1.0)
 
     def _inputs(self, episode: Episode) -> Any:
         """A function StepObservation -> ProcessInput for this episode's action."""

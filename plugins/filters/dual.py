@@ -6,9 +6,10 @@ The belief over the joint state ``s = (psi, phi)`` (pose/twist block, then param
 - **Predict** (eq. 21-26): C Monte-Carlo sigma points ``mu + L eps`` (``L`` the Cholesky
   factor), the draws ``eps`` standardised to sample mean 0 and covariance I so that the points'
   moments are the belief's (the paper's raw draws make static parameters drift and collapse
-  by the sample error, step after step; see ``standardise_noise``). Points that break the physical constraints reach the process model as a projected
-  (clamped) copy, but every point keeps its own unprojected parameters in the moments, so the
-  parameter variance is preserved. Parameters stay constant (eq. 23), the process noise is
+  by the sample error, step after step; see ``standardise_noise``). Points that break the
+  physical constraints reach the process model as a projected (clamped) copy, but every
+  point keeps its own unprojected parameters in the moments, so the parameter variance is
+  preserved. Parameters stay constant (eq. 23), the process noise is
   added by reparameterisation (eq. 24), and the moments use weights 1/C (eq. 25-26).
 - **Update**: the parameters by importance weights (eq. 31, in log space, diagonal R) and
   Liu-West kernel smoothing in its textbook form (``a = (3 delta - 1) / (2 delta)``,
@@ -263,17 +264,26 @@ def squared_residuals(expected: Tensor, observation: Tensor, consume: bool = Fal
     return residual.square() if residual.requires_grad else residual.square_()
 
 
-def spread_var(mean_residual: Tensor, squared: Tensor) -> Tensor:
-    """Unbiased variance over the C points of each entry of the expected observations (as
-    ``Tensor.var(-2)``), from their residuals against the observation: the mean residual
-    [..., k] and the squared residuals [..., C, k] -> [..., k].
+def parameter_regression(parameters: Tensor, expected: Tensor) -> tuple[Tensor, Tensor]:
+    """Least-squares linear fit of the C points' expected observations on their parameters:
+    parameters [..., C, p], expected [..., C, k] -> fitted values [..., C, k] and residual
+    variance [..., k] (unbiased, C - p - 1 degrees of freedom).
 
-    The data are shifted by the observation, which lies among the points' values, so the
-    one-pass formula keeps its precision; clamped at 0 against rounding.
+    The fit is the Gaussian estimate of ``E[h | phi_i]`` and the residual variance that of
+    ``Var[h | phi]``: what the points' pose scatter adds to an observation given the
+    parameters. A tiny ridge keeps a degenerate parameter block solvable.
     """
-    count = squared.shape[-2]
-    biased = (squared.mean(-2) - mean_residual.square()).clamp_min(0.0)
-    return biased * (count / (count - 1))
+    count, size = parameters.shape[-2], parameters.shape[-1]
+    deviation = parameters - parameters.mean(-2, keepdim=True)
+    centre = expected.mean(-2, keepdim=True)
+    gram = deviation.mT @ deviation
+    scale = gram.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-300)
+    eye = torch.eye(size, dtype=gram.dtype, device=gram.device)
+    ridge = (1e-9 * scale)[..., None, None] * eye
+    coefficients = torch.linalg.solve(gram + ridge, deviation.mT @ (expected - centre))
+    fitted = centre + deviation @ coefficients
+    residual_var = (expected - fitted).square().sum(-2) / max(count - size - 1, 1)
+    return fitted, residual_var
 
 
 def weighted_squared_sums(squared: Tensor, inverse_var: Tensor) -> Tensor:
@@ -516,15 +526,19 @@ class DualFilter:
 
     Robustness (see ``update``): ``min_ess_fraction`` in [0, 1] tempers the parameter weights
     until their effective sample size is at least that fraction of C (0: plain eq. 31);
-    ``marginal_parameter_likelihood`` weighs the parameters with ``R`` plus the per-entry
-    variance of the sigma points' expected observations, the Gaussian marginal over the
-    points' pose spread (otherwise the pose scatter of the points, not their parameters,
-    decides the weights); ``pose_std_floor`` [6] (m, rad, m/s, rad/s per link entry, or None)
-    is the least std of the predicted pose block: the unscented points must spread over at
-    least about a pixel for the rendered depth to tell them apart. An observation model with
-    an ``unexplained(observation [..., k], expected [..., C, k]) -> bool [..., k]`` method
-    marks entries it cannot explain (the gripper in front of the object); they get the noise
-    variance ``UNEXPLAINED_VAR``.
+    ``marginal_parameter_likelihood`` weighs the parameters by the Gaussian marginal over the
+    points' pose scatter: the observation expected at each point's parameters is the linear
+    fit of the points' expected observations on their parameters, its variance ``R`` plus the
+    fit's residual variance (``parameter_regression``; otherwise the pose scatter of the
+    points, not their parameters, decides the weights); ``pose_std_floor`` [6] (m, rad, m/s,
+    rad/s per link entry, or None) is the least std of the predicted pose block: the unscented
+    points must spread over at least about a pixel for the rendered depth to tell them apart.
+    An observation model with an ``unexplained(observation [..., k], expected [..., C, k]) ->
+    bool [..., k]`` method marks entries it cannot explain (the gripper in front of the
+    object); they get the noise variance ``UNEXPLAINED_VAR``. ``evidence_scale`` in (0, 1]
+    multiplies the parameter log likelihoods (a power likelihood): ``1 / tau`` counts ``tau``
+    steps as one independent observation, for a model whose errors persist over ``tau`` steps
+    (otherwise the same error, seen every step, makes the parameters overconfident).
     """
 
     def __init__(
@@ -539,6 +553,7 @@ class DualFilter:
         min_ess_fraction: float = 0.8,
         marginal_parameter_likelihood: bool = True,
         pose_std_floor: Sequence[float] | None = (0.006, 0.006, 0.06, 0.0, 0.0, 0.0),
+        evidence_scale: float = 1.0,
     ) -> None:
         if sigma_points < 2:
             raise ValueError(f"sigma_points must be >= 2, got {sigma_points}")
@@ -555,6 +570,9 @@ class DualFilter:
         self.liu_west_delta = liu_west_delta
         self.ukf_kappa = ukf_kappa
         self.parameter_var_floor = parameter_var_floor
+        if not 0.0 < evidence_scale <= 1.0:
+            raise ValueError(f"evidence_scale must be in (0, 1], got {evidence_scale}")
+        self.evidence_scale = evidence_scale
         if not 0.0 <= min_ess_fraction <= 1.0:
             raise ValueError(f"min_ess_fraction must be in [0, 1], got {min_ess_fraction}")
         self.min_ess_fraction = min_ess_fraction
@@ -619,11 +637,12 @@ class DualFilter:
         if unexplained is not None:
             mask = unexplained(observation, expected)
             noise_var = torch.where(mask, torch.full_like(noise_var, UNEXPLAINED_VAR), noise_var)
+        parameters = sigma_pred[..., self.layout.parameter_slice]
         log_likelihood = self._log_likelihoods(
-            expected, observation, noise_var, prediction.force_n.shape[-1]
+            expected, observation, noise_var, prediction.force_n.shape[-1], parameters
         )
         log_weights, beta = temper_log_weights(
-            log_likelihood, self.min_ess_fraction * self.sigma_points
+            self.evidence_scale * log_likelihood, self.min_ess_fraction * self.sigma_points
         )
         weights = log_weights.exp()
         if logger.isEnabledFor(logging.DEBUG):
@@ -634,7 +653,6 @@ class DualFilter:
                 self.sigma_points,
                 beta.tolist(),
             )
-        parameters = sigma_pred[..., self.layout.parameter_slice]
         parameter_mean, parameter_cov = liu_west(parameters, weights, self.liu_west_delta)
         eye = torch.eye(parameter_cov.shape[-1], dtype=DTYPE, device=parameter_cov.device)
         parameter_cov = parameter_cov + self.parameter_var_floor * eye
@@ -657,21 +675,29 @@ class DualFilter:
         return self.update(belief_pred, sigma_pred, prediction, observation)
 
     def _log_likelihoods(
-        self, expected: Tensor, observation: Tensor, noise_var: Tensor, n_tactile: int
+        self,
+        expected: Tensor,
+        observation: Tensor,
+        noise_var: Tensor,
+        n_tactile: int,
+        parameters: Tensor,
     ) -> Tensor:
-        """The parameter log likelihoods (eq. 31) of the C points [..., C]; sets
-        ``last_log_likelihood`` (eq. 37 per modality). All from one squared residual tensor
-        (written over ``expected``, which is used up) and one matrix product."""
-        mean_residual = expected.mean(-2) - observation
-        squared = squared_residuals(expected, observation, consume=True)
-        parameter_var = noise_var
+        """The parameter log likelihoods (eq. 31) of the C points [..., C] with parameters
+        [..., C, p]; sets ``last_log_likelihood`` (eq. 37 per modality). ``expected`` is used
+        up (the squared residuals are written over it)."""
+        squared_fit, fit_var = None, noise_var
         if self.marginal_parameter_likelihood:
-            parameter_var = noise_var + spread_var(mean_residual, squared)
+            fitted, residual_var = parameter_regression(parameters, expected)
+            squared_fit = squared_residuals(fitted, observation, consume=True)
+            fit_var = noise_var + residual_var
+        squared = squared_residuals(expected, observation, consume=True)
         modality_weights = modality_inverse_var(noise_var, n_tactile)
-        parameter_weights = parameter_var.reciprocal().unsqueeze(-2)
-        sums = weighted_squared_sums(squared, torch.cat([modality_weights, parameter_weights], -2))
-        self.last_log_likelihood = log_mean_likelihood(sums[..., :2])
-        log_likelihood = -0.5 * sums[..., 2]
+        modality_sums = weighted_squared_sums(squared, modality_weights)
+        self.last_log_likelihood = log_mean_likelihood(modality_sums)
+        if squared_fit is None:
+            squared_fit = squared
+        fit_weights = fit_var.reciprocal().unsqueeze(-2)
+        log_likelihood = -0.5 * weighted_squared_sums(squared_fit, fit_weights)[..., 0]
         require_finite_summary(log_likelihood, squared, "expected observation")
         return log_likelihood
 

@@ -384,6 +384,10 @@ class ObsNoiseNet(nn.Module):
 
     log_var_init: Tensor
     """Buffer [2]: initial log-variances (visual, tactile)."""
+    evidence_steps: Tensor
+    """Buffer []: the integrated autocorrelation time (steps) of the process model's force
+    error, measured by ``vistac train``; the filter counts that many steps of an interaction
+    as one independent observation (1 until trained)."""
 
     def __init__(
         self,
@@ -425,6 +429,7 @@ class ObsNoiseNet(nn.Module):
         self.tactile = nn.Sequential(nn.Linear(N_FORCE, 16), nn.ReLU(), tactile_head)
         log_var_init = 2.0 * torch.tensor([math.log(visual_std_m), math.log(tactile_std_n)])
         self.register_buffer("log_var_init", log_var_init)
+        self.register_buffer("evidence_steps", torch.tensor(1.0))
         self.to(DTYPE)
 
     def forward(self, observation: Tensor) -> Tensor:

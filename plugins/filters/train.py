@@ -113,8 +113,8 @@ PRESETS: dict[str, TrainConfig] = {
     ),
     "ship": TrainConfig(
         objects="generated", models=("gnn",), hidden=32,
-        collect_overrides=("tree.sequence.0.repeat.max=8",), epochs=60, noise_epochs=3,
-        filter_epochs=1, filter_sigma_points=16, filter_windows=8, batch_size=16, patience=15,
+        collect_overrides=("tree.sequence.0.repeat.max=8",), epochs=30, noise_epochs=3,
+        filter_epochs=1, filter_sigma_points=16, filter_windows=8, batch_size=16, patience=10,
     ),
     "paper": TrainConfig(objects="generated", runs_per_object=1, epochs=60, patience=8),
 }  # fmt: skip
@@ -250,12 +250,46 @@ def observations(window: Trajectory, projector: DepthProjector) -> Tensor:
     )
 
 
-def noise_loss(noise_net: ObsNoiseNet, window: Trajectory, rng: np.random.Generator) -> Tensor:
-    """NLL of the measured observations around the projection at the true poses."""
+def predicted_forces(model: Any, window: Trajectory) -> Tensor:
+    """The process model's finger forces [T, 2] one step ahead of the window's true states
+    (at step 0, the measured force): the tactile expectation of eq. 28."""
+    layout = StateLayout(window.n_links)
+    truth = true_states(window, layout)
+    inputs = process_inputs([window])
+    measured = torch.as_tensor(window.force_n, dtype=DTYPE)
+    with torch.no_grad():
+        ahead = [
+            model.predict(truth[step : step + 1][None], inputs[step], window.dt_s).force_n[0, 0]
+            for step in range(window.steps - 1)
+        ]
+    return torch.stack([measured[0], *ahead])
+
+
+def correlation_steps(errors: list[Tensor]) -> float:
+    """Integrated autocorrelation time ``1 + 2 sum_k rho_k`` (steps, >= 1) of error sequences
+    [T_i, d] about zero (a model's bias that persists through a trajectory counts as
+    correlation), the lags summed while the autocorrelation stays positive (Geyer's initial
+    positive sequence)."""
+    longest = max(len(error) for error in errors)
+    numerator, denominator = torch.zeros(longest, dtype=DTYPE), torch.zeros((), dtype=DTYPE)
+    for error in errors:
+        denominator = denominator + error.square().sum()
+        for lag in range(1, len(error)):
+            numerator[lag] += (error[lag:] * error[:-lag]).sum()
+    rho = numerator[1:] / denominator.clamp_min(1e-300)
+    positive = int((rho <= 0).nonzero()[0]) if bool((rho <= 0).any()) else len(rho)
+    return float(1.0 + 2.0 * rho[:positive].sum())
+
+
+def noise_loss(
+    noise_net: ObsNoiseNet, window: Trajectory, force_n: Tensor, rng: np.random.Generator
+) -> Tensor:
+    """NLL of the measured observations around the projection at the true poses and the
+    model's forces ``force_n`` [T, 2] (see ``predicted_forces``)."""
     projector = _projector(window, rng)
     measured = observations(window, projector)
     rendered = projector.render(torch.as_tensor(window.poses, dtype=DTYPE)[:, None]).squeeze(1)
-    expected = torch.cat([rendered.flatten(-2), measured[:, -2:]], -1)
+    expected = torch.cat([rendered.flatten(-2), force_n], -1)
     return gaussian_nll(measured - expected, noise_net.noise_var(measured))
 
 
@@ -423,10 +457,20 @@ def train_interaction(
     noise_path = out_dir / f"obs_noise_{kind}.pt"
     if warm_start and noise_path.is_file():
         noise_net.load_state_dict(torch.load(noise_path, weights_only=True))
-    report["obs_noise"] = _train_noise(noise_net, windows, config, rng)
+
+    def train_noise(model: Any) -> None:
+        """The noise net learns the first model's force error (the tactile expectation) and
+        how many steps that error persists."""
+        if "obs_noise" not in report:
+            report["obs_noise"] = _train_noise(noise_net, windows, model, config, rng)
+            errors = [predicted_forces(model, w) - torch.as_tensor(w.force_n, dtype=DTYPE)
+                      for w in data["val"] if w.kind == kind]  # fmt: skip
+            noise_net.evidence_steps.fill_(correlation_steps(errors))
+            report["evidence_steps"] = float(noise_net.evidence_steps)
+
     for name in config.models:
         report[name] = _train_model(
-            name, kind, noise_net, windows, config, out_dir, rng, warm_start
+            name, kind, noise_net, windows, config, out_dir, rng, warm_start, train_noise
         )
     _save_noise(noise_net, noise_path)
     return report
@@ -440,15 +484,20 @@ def window_steps(trajectories: list[Trajectory]) -> int:
 def _train_noise(
     noise_net: ObsNoiseNet,
     windows: dict[str, list[Trajectory]],
+    model: Any,
     config: TrainConfig,
     rng: np.random.Generator,
 ) -> list[dict[str, float]]:
+    forces = {split: [predicted_forces(model, w) for w in windows[split]]
+              for split in ("train", "val")}  # fmt: skip
+
     def train() -> Iterator[Tensor]:
-        for window in rng.permutation(len(windows["train"])):
-            yield noise_loss(noise_net, windows["train"][window], rng)
+        for index in rng.permutation(len(windows["train"])):
+            yield noise_loss(noise_net, windows["train"][index], forces["train"][index], rng)
 
     def val() -> float:
-        return float(np.mean([float(noise_loss(noise_net, w, rng)) for w in windows["val"]]))
+        pairs = zip(windows["val"], forces["val"], strict=True)
+        return float(np.mean([float(noise_loss(noise_net, w, f, rng)) for w, f in pairs]))
 
     params = list(noise_net.parameters())
     return fit(params, train, val, [noise_net], config.noise_epochs, config, "obs noise")
@@ -463,13 +512,16 @@ def _train_model(
     out_dir: Path,
     rng: np.random.Generator,
     warm_start: bool = False,
+    before_filter: Callable[[Any], None] = lambda model: None,
 ) -> dict[str, Any]:
+    """Fit one process model by rollouts, call ``before_filter`` with it, then train it end to
+    end through the filter and save it."""
     link_counts = sorted({w.n_links for w in windows["train"]})
     if name == "ff" and len(link_counts) > 1:
         # The feed-forward baseline has a fixed link count: one model per count.
         return {
             f"{n}_links": _train_model(name, kind, noise_net, _only(windows, n), config,
-                                       out_dir / f"ff{n}", rng, warm_start)
+                                       out_dir / f"ff{n}", rng, warm_start, before_filter)
             for n in link_counts
         }  # fmt: skip
     path = out_dir / f"{name}_{kind}.pt"
@@ -488,6 +540,7 @@ def _train_model(
 
     params = list(model.net.parameters())
     history = fit(params, train, val, [model.net], config.epochs, config, f"{name} {kind}")
+    before_filter(model)
     filter_history = _train_filter(model, noise_net, windows, config, rng, f"{name} {kind} DF")
     model.save_checkpoint(path)
     return {
