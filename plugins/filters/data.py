@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 
 CLOUD_POINTS = 2000
 """Points of the object cloud the depth projector moves with the links."""
-MISS_MARGIN_M = 0.02
+MISS_MARGIN_M = 0.008
 """How far a missed push's TCP stays from the object (:func:`missed_push`)."""
 _PAD_HALF_WIDTH_M = 0.012
 """Half the width of the finger pad across the push (the simulated gripper's)."""
