@@ -17,7 +17,6 @@ from vistac.plugins.filters.dual import (
     cholesky_safe,
     feasible,
     liu_west,
-    parameter_regression,
     project_feasible,
     sample_sigma_points,
     standardise_noise,
@@ -550,21 +549,30 @@ def test_likelihoods_from_squared_residuals_equal_the_plain_formulas() -> None:
     )
 
 
-def test_parameter_regression_recovers_a_linear_observation_and_its_scatter() -> None:
-    """Expected observations = linear in the parameters + a scatter orthogonal to them: the fit
-    is the linear part and the residual variance the scatter's (C - p - 1 dof)."""
+def test_marginal_likelihood_equals_the_plain_fit_and_residual_formulas() -> None:
+    """Expected observations = linear in the parameters + a scatter orthogonal to them: the
+    fast marginal likelihood equals N(z; linear part, R + scatter variance (C - p - 1 dof))
+    written out, and a degenerate parameter block stays finite."""
+    from vistac.plugins.filters.dual import marginal_log_likelihood, parameter_fit
+
     generator = torch.Generator().manual_seed(4)
     parameters = torch.randn(2, 30, 4, generator=generator, dtype=DTYPE)
     linear = 0.5 + parameters @ torch.randn(4, 50, generator=generator, dtype=DTYPE)
     design = torch.cat([torch.ones(2, 30, 1, dtype=DTYPE), parameters], -1)
     scatter = torch.randn(2, 30, 50, generator=generator, dtype=DTYPE)
     scatter -= design @ torch.linalg.lstsq(design, scatter).solution  # orthogonal to the design
-    fitted, residual_var = parameter_regression(parameters, linear + scatter)
-    torch.testing.assert_close(fitted, linear, rtol=0, atol=1e-7)  # (the ridge)
-    torch.testing.assert_close(residual_var, scatter.square().sum(-2) / 25, rtol=1e-6, atol=0)
-    same = parameters[..., :1].expand(2, 30, 4)  # a degenerate block stays solvable
-    fitted, residual_var = parameter_regression(same, linear)
-    assert bool(torch.isfinite(fitted).all() and (residual_var >= 0).all())
+    expected = linear + scatter
+    observation = 0.5 + torch.randn(2, 50, generator=generator, dtype=DTYPE)
+    noise_var = 0.1 + torch.rand(2, 50, generator=generator, dtype=DTYPE)
+    variance = noise_var + scatter.square().sum(-2) / 25
+    plain = -0.5 * ((linear - observation.unsqueeze(-2)).square() / variance.unsqueeze(-2)).sum(-1)
+    residual = expected - observation.unsqueeze(-2)
+    moments = (residual.mean(-2), residual.square().sum(-2), noise_var)
+    fast = marginal_log_likelihood(parameter_fit(parameters, expected), *moments)
+    torch.testing.assert_close(fast, plain, rtol=1e-6, atol=1e-6)  # (the ridge)
+    same = parameters[..., :1].expand(2, 30, 4)
+    degenerate = marginal_log_likelihood(parameter_fit(same, expected), *moments)
+    assert bool(torch.isfinite(degenerate).all())
 
 
 def test_consumed_expected_observations_give_the_same_update() -> None:

@@ -35,7 +35,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import torch
 from torch import Tensor
@@ -264,26 +264,49 @@ def squared_residuals(expected: Tensor, observation: Tensor, consume: bool = Fal
     return residual.square() if residual.requires_grad else residual.square_()
 
 
-def parameter_regression(parameters: Tensor, expected: Tensor) -> tuple[Tensor, Tensor]:
-    """Least-squares linear fit of the C points' expected observations on their parameters:
-    parameters [..., C, p], expected [..., C, k] -> fitted values [..., C, k] and residual
-    variance [..., k] (unbiased, C - p - 1 degrees of freedom).
+class ParameterFit(NamedTuple):
+    """Least-squares linear fit of the C points' expected observations [..., C, k] on their
+    parameters [..., C, p] (``parameter_fit``): ``deviation`` [..., C, p] of the parameters
+    from their mean, ``gram`` [..., p, p] their Gram matrix (plus a tiny ridge) and
+    ``coefficients`` [..., p, k]."""
 
-    The fit is the Gaussian estimate of ``E[h | phi_i]`` and the residual variance that of
-    ``Var[h | phi]``: what the points' pose scatter adds to an observation given the
-    parameters. A tiny ridge keeps a degenerate parameter block solvable.
-    """
-    count, size = parameters.shape[-2], parameters.shape[-1]
+    deviation: Tensor
+    gram: Tensor
+    coefficients: Tensor
+
+
+def parameter_fit(parameters: Tensor, expected: Tensor) -> ParameterFit:
+    """Fit ``expected`` [..., C, k] on ``parameters`` [..., C, p] (one [p, C] x [C, k] product:
+    the centred deviations make centring ``expected`` unnecessary). A tiny ridge keeps a
+    degenerate parameter block solvable."""
     deviation = parameters - parameters.mean(-2, keepdim=True)
-    centre = expected.mean(-2, keepdim=True)
     gram = deviation.mT @ deviation
     scale = gram.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-300)
-    eye = torch.eye(size, dtype=gram.dtype, device=gram.device)
-    ridge = (1e-9 * scale)[..., None, None] * eye
-    coefficients = torch.linalg.solve(gram + ridge, deviation.mT @ (expected - centre))
-    fitted = centre + deviation @ coefficients
-    residual_var = (expected - fitted).square().sum(-2) / max(count - size - 1, 1)
-    return fitted, residual_var
+    eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
+    gram = gram + (1e-9 * scale)[..., None, None] * eye
+    return ParameterFit(deviation, gram, torch.linalg.solve(gram, deviation.mT @ expected))
+
+
+def marginal_log_likelihood(
+    fit: ParameterFit, mean_residual: Tensor, residual_sums: Tensor, noise_var: Tensor
+) -> Tensor:
+    """Log likelihood [..., C] of each point's parameters, marginal over the points' pose
+    scatter: ``N(z; fitted_i, R + residual variance)`` with ``fitted_i`` the fit's value at
+    the point's parameters (``E[h | phi_i]``) and the residual variance (C - p - 1 dof) that of
+    ``Var[h | phi]``. mean_residual [..., k] is ``mean_i(h_i) - z``, residual_sums [..., k]
+    ``sum_i (h_i - z)^2``; nothing of size C x k is formed (the fitted values are expanded
+    in the parameters' deviations)."""
+    deviation, gram, coefficients = fit
+    count, size = deviation.shape[-2], deviation.shape[-1]
+    explained = (coefficients * (gram @ coefficients)).sum(-2)
+    scatter = residual_sums - count * mean_residual.square() - explained
+    inverse_var = (noise_var + scatter.clamp_min(0.0) / max(count - size - 1, 1)).reciprocal()
+    weighted = inverse_var * mean_residual
+    linear = deviation @ (coefficients @ weighted.unsqueeze(-1))  # [..., C, 1]
+    quadratic = (coefficients * inverse_var.unsqueeze(-2)) @ coefficients.mT  # [..., p, p]
+    squares = ((deviation @ quadratic) * deviation).sum(-1)
+    constant = (weighted * mean_residual).sum(-1, keepdim=True)
+    return -0.5 * (constant + 2.0 * linear[..., 0] + squares)
 
 
 def weighted_squared_sums(squared: Tensor, inverse_var: Tensor) -> Tensor:
@@ -529,7 +552,7 @@ class DualFilter:
     ``marginal_parameter_likelihood`` weighs the parameters by the Gaussian marginal over the
     points' pose scatter: the observation expected at each point's parameters is the linear
     fit of the points' expected observations on their parameters, its variance ``R`` plus the
-    fit's residual variance (``parameter_regression``; otherwise the pose scatter of the
+    fit's residual variance (``marginal_log_likelihood``; otherwise the pose scatter of the
     points, not their parameters, decides the weights); ``pose_std_floor`` [6] (m, rad, m/s,
     rad/s per link entry, or None) is the least std of the predicted pose block: the unscented
     points must spread over at least about a pixel for the rendered depth to tell them apart.
@@ -685,19 +708,17 @@ class DualFilter:
         """The parameter log likelihoods (eq. 31) of the C points [..., C] with parameters
         [..., C, p]; sets ``last_log_likelihood`` (eq. 37 per modality). ``expected`` is used
         up (the squared residuals are written over it)."""
-        squared_fit, fit_var = None, noise_var
-        if self.marginal_parameter_likelihood:
-            fitted, residual_var = parameter_regression(parameters, expected)
-            squared_fit = squared_residuals(fitted, observation, consume=True)
-            fit_var = noise_var + residual_var
+        mean_residual = expected.mean(-2) - observation
+        fit = parameter_fit(parameters, expected) if self.marginal_parameter_likelihood else None
         squared = squared_residuals(expected, observation, consume=True)
         modality_weights = modality_inverse_var(noise_var, n_tactile)
         modality_sums = weighted_squared_sums(squared, modality_weights)
         self.last_log_likelihood = log_mean_likelihood(modality_sums)
-        if squared_fit is None:
-            squared_fit = squared
-        fit_weights = fit_var.reciprocal().unsqueeze(-2)
-        log_likelihood = -0.5 * weighted_squared_sums(squared_fit, fit_weights)[..., 0]
+        if fit is None:
+            sums = weighted_squared_sums(squared, noise_var.reciprocal().unsqueeze(-2))
+            log_likelihood = -0.5 * sums[..., 0]
+        else:
+            log_likelihood = marginal_log_likelihood(fit, mean_residual, squared.sum(-2), noise_var)
         require_finite_summary(log_likelihood, squared, "expected observation")
         return log_likelihood
 
