@@ -27,8 +27,8 @@ from vistac.plugins.filters.active import (
 )
 from vistac.plugins.filters.data import Trajectory, acted_link
 from vistac.plugins.filters.evaluate import read_skill
-from vistac.plugins.filters.state import DTYPE, Prediction
-from vistac.plugins.filters.train import load_preset
+from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput
+from vistac.plugins.filters.train import load_preset, predicted_forces
 
 ROOT = Path(__file__).resolve().parents[1]
 SKILLS = ROOT / "skills"
@@ -125,6 +125,24 @@ class _OffsetModel:
         pose[..., 0] += 0.01
         force = torch.tensor([[1.5, 0.0]], dtype=DTYPE).expand(state.shape[0], 1, 2)
         return Prediction(pose, force, torch.ones(state.shape[0], 6, dtype=DTYPE))
+
+
+class _TcpForceModel:
+    """A force of (10 x the TCP's x, the state's y) N: tells whether each step got its own
+    input and its own true state."""
+
+    def predict(self, state: torch.Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
+        force = torch.stack([10.0 * inputs.tcp[..., 0], state[..., 0, 1]], -1)[..., None, :]
+        return Prediction(state[..., :6], force, torch.ones(state.shape[0], 6, dtype=DTYPE))
+
+
+def test_predicted_forces_are_one_step_ahead_of_each_true_state() -> None:
+    window = _trajectory("a", steps=4)
+    window.tcp[:, 0] = [0.1, 0.2, 0.3, 0.4]
+    window.poses[:, 0, 1] = [0.5, 0.6, 0.7, 0.8]
+    forces = predicted_forces(_TcpForceModel(), window)
+    expected = [[1.0, 0.0], [1.0, 0.5], [2.0, 0.6], [3.0, 0.7]]  # step 0: the measured force
+    torch.testing.assert_close(forces, torch.tensor(expected, dtype=DTYPE))
 
 
 def test_validation_error_by_hand() -> None:

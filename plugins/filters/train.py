@@ -253,16 +253,16 @@ def observations(window: Trajectory, projector: DepthProjector) -> Tensor:
 def predicted_forces(model: Any, window: Trajectory) -> Tensor:
     """The process model's finger forces [T, 2] one step ahead of the window's true states
     (at step 0, the measured force): the tactile expectation of eq. 28."""
-    layout = StateLayout(window.n_links)
-    truth = true_states(window, layout)
-    inputs = process_inputs([window])
-    measured = torch.as_tensor(window.force_n, dtype=DTYPE)
+    truth = true_states(window, StateLayout(window.n_links))
+    first, steps = process_inputs([window])[0], window.steps - 1
+    inputs = ProcessInput(  # all steps as one batch
+        torch.as_tensor(window.tcp[:-1], dtype=DTYPE), first.pd_rad.expand(steps),
+        first.is_pull.expand(steps), first.link.expand(steps),
+        first.link_size_m.expand(steps, -1, -1), first.link_offset.expand(steps, -1, -1),
+    )  # fmt: skip
     with torch.no_grad():
-        ahead = [
-            model.predict(truth[step : step + 1][None], inputs[step], window.dt_s).force_n[0, 0]
-            for step in range(window.steps - 1)
-        ]
-    return torch.stack([measured[0], *ahead])
+        ahead = model.predict(truth[:-1, None], inputs, window.dt_s).force_n[:, 0]
+    return torch.cat([torch.as_tensor(window.force_n[:1], dtype=DTYPE), ahead])
 
 
 def correlation_steps(errors: list[Tensor]) -> float:
