@@ -10,7 +10,11 @@ from simctx import TestContext
 from vistac.errors import DataError
 from vistac.objects import footprint_polygon, prism_distance_m, prism_surface_points, to_world_xy
 from vistac.plugins.shape.evaluation import shape_errors
-from vistac.plugins.shape.preprocess import Open3dCloudProcessor, transform_points
+from vistac.plugins.shape.preprocess import (
+    Open3dCloudProcessor,
+    dbscan_labels,
+    transform_points,
+)
 from vistac.protocols import CloudProcessor
 from vistac.types import PointCloud
 
@@ -54,6 +58,28 @@ def test_segment_keeps_the_object_standing_on_the_table(processor: Open3dCloudPr
     assert np.all(np.abs(segmented[:, 0]) < 0.07)
     assert np.all(np.abs(segmented[:, 1] - 0.45) < 0.07)
     assert segmented[:, 2].min() > 0.004, "table points were left in"
+
+
+def test_dbscan_labels_match_open3d() -> None:
+    """Same clusters and noise as open3d's cluster_dbscan: two boxes 2 cm apart, a sparse
+    scatter (noise and border points) and a dense clump too small to hide in the noise."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(3)
+    points = np.concatenate([
+        box_points(rng, (0.0, 0.45)), box_points(rng, (0.16, 0.45)),
+        rng.uniform([-0.1, 0.3, 0.0], [0.25, 0.6, 0.1], size=(400, 3)),
+        rng.normal([0.3, 0.3, 0.05], 0.002, size=(12, 3)),
+    ])  # fmt: skip
+    ours = dbscan_labels(points, 0.012, 10)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    theirs = np.asarray(cloud.cluster_dbscan(0.012, 10))
+    assert np.array_equal(ours == -1, theirs == -1)
+    assert len(np.unique(theirs[theirs >= 0])) == 3
+    # One cluster of ours per cluster of open3d's and back (border points may join either
+    # of two touching clusters, so compare the pairs of labels that co-occur).
+    pairs = np.unique(np.column_stack([ours, theirs])[theirs >= 0], axis=0)
+    assert len(np.unique(pairs[:, 0])) == len(pairs) == len(np.unique(pairs[:, 1]))
 
 
 @pytest.mark.parametrize(
