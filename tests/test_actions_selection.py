@@ -141,6 +141,18 @@ def test_unreachable_candidates_are_dropped(tmp_path: Path) -> None:
         assert 0.2 <= start[1] <= 0.47 and 0.2 <= end[1] <= 0.47
 
 
+def test_pushes_keep_within_the_spread_of_the_chosen_direction(tmp_path: Path) -> None:
+    link = _link(ELLIPSE, (0.0, 0.45), exponents=1.0)
+    sampler = _sampler(tmp_path, samples=200, interactions=["push", "pull"],
+                       push_towards_rad=math.pi / 2, push_spread_rad=math.pi / 6)  # fmt: skip
+    actions = sampler.sample(_scene(link), np.random.default_rng(5))
+    pushes = [a for a in actions if isinstance(a, Push)]
+    assert 10 < len(pushes) < 60  # about a sixth of the ~100 pushes drawn
+    assert all(_angle_deg(a.pd_rad, math.pi / 2) <= 30.0 for a in pushes)
+    assert all(a.cp_m[1] < 0.45 for a in pushes)  # on the near side, heading +y
+    assert any(isinstance(a, Pull) for a in actions)  # pulls keep their own directions
+
+
 def test_pushes_whose_approach_starts_inside_another_link_are_dropped(tmp_path: Path) -> None:
     left, right = _link(BOX / 2, (-0.075, 0.45)), _link(BOX / 2, (0.085, 0.45))  # 1 cm gap
     sampler = _sampler(tmp_path, samples=200, interactions=["push"], link=0)

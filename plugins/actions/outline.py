@@ -63,6 +63,12 @@ class OutlineSampler(Component):
             -np.pi / 2, description="mean pull direction (-y: towards the robot)"
         )
         pull_spread_rad: float = Field(np.pi / 3, ge=0, description="pull direction ~ U(+-spread)")
+        push_towards_rad: float | None = Field(
+            None, description="keep pushes heading within push_spread_rad of this; None: any"
+        )
+        push_spread_rad: float = Field(
+            np.pi / 6, gt=0, le=np.pi, description="see push_towards_rad"
+        )
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
         super().__init__(config, ctx)
@@ -81,7 +87,13 @@ class OutlineSampler(Component):
         return actions
 
     def _reachable(self, action: Action) -> bool:
-        """Whether the interaction's start and end points lie in the workspace."""
+        """Whether the interaction's start and end points lie in the workspace, and a push
+        heads where ``push_towards_rad`` allows."""
+        towards = self.config.push_towards_rad
+        if isinstance(action, Push) and towards is not None:
+            off_rad = np.angle(np.exp(1j * (action.pd_rad - towards)))
+            if abs(off_rad) > self.config.push_spread_rad:
+                return False
         start = action_point(action)
         heading = np.array([np.cos(action.pd_rad), np.sin(action.pd_rad)])
         end = start + heading * action.speed_mps * action.duration_s
