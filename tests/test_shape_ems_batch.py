@@ -100,10 +100,29 @@ def test_step_cut_matches_the_search_one_cut_at_a_time(seed: int) -> None:
     height = np.where(along > rng.uniform(-0.04, 0.04), 0.03, 0.05) + rng.normal(0, 0.002, 2000)
     if seed % 4 == 0:
         height = rng.uniform(0.01, 0.06, 2000)
+    order = np.argsort(height)
+    along, height = along[order], height[order]
     gain, cut = ems._step_cut(along, height)
     want_gain, want_cut = _step_cut_one_cut_at_a_time(along, height)
     assert cut == want_cut
     assert gain == pytest.approx(want_gain, rel=1e-9, abs=1e-15)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_top_profile_is_the_top_percentile_of_each_bin(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    along = rng.uniform(-0.08, 0.08, 3000)
+    height = np.sort(rng.uniform(0.01, 0.06, 3000))
+    top, edges = ems._top_profile(along, height)
+    low, high = np.percentile(along, ems._SPAN_PERCENTILES)
+    want_top, want_edges = [], []
+    for edge in np.arange(low, high, ems._STEP_BIN_M):
+        inside = np.sort(height[(along >= edge) & (along < min(edge + ems._STEP_BIN_M, high))])
+        if len(inside) >= ems._MIN_LINK_POINTS:
+            want_top.append(inside[int(ems._TOP_PERCENTILE / 100 * (len(inside) - 1))])
+            want_edges.append(edge)
+    np.testing.assert_allclose(top, want_top)
+    np.testing.assert_allclose(edges, want_edges)
 
 
 def test_masked_median_is_the_median_of_each_row() -> None:

@@ -976,30 +976,44 @@ def fit_links(
     in the next, and a good split found earlier is not lost.
 
     Each step tries, in turn, to split the largest link where the view from above shows a
-    seam (:func:`_split_labels`) and to add a link on the largest cluster of unexplained points
+    seam (:func:`_seam_proposals`) and to add a link on the largest cluster of unexplained points
     (III-B3, when at least ``outlier_threshold_points``); the links of a proposal are fitted
     jointly (:func:`_fit_jointly`) and kept only when they explain the points better. The
-    last view's links are refitted in one batch with the first, single link.
+    last view's links and the first round of the single link's seam proposal (the seam is
+    found without the link's fit) are fitted in one batch with the single link: fewer,
+    larger array operations, the same fits.
     """
     if max_links == 1:
         return [fit_superquadric(points_m, options)]
     dense = _dense_mask(points_m)
-    link_points: list[FloatArray] = []
-    link_excluded: list[FloatArray | None] = []
-    starts: list[EMSResult] = []
-    if previous is not None and 1 < len(previous) <= max_links:
-        sets = _link_sets(points_m, dense, _assign(points_m, previous), options)
-        if sets is not None:
-            (link_points, link_excluded), starts = sets, previous
-    # The single link and the last view's links refitted (each from where it was): one batch.
+    starts = previous if previous is not None and 1 < len(previous) <= max_links else []
+    warm = _link_sets(points_m, dense, _assign(points_m, starts), options) if starts else None
+    if warm is None:
+        starts, warm = [], ([], [])
+    # The single link's seam is found without its fit, so its first round joins the batch.
+    seams = _seam_proposals(points_m, np.zeros(len(points_m), dtype=np.int64), 1)
+    seam_sets = [_link_sets(points_m, dense, seam.labels, options) for seam in seams]
+    seams = [seam for seam, sets in zip(seams, seam_sets, strict=True) if sets is not None]
+    cold_points, cold_excluded = _joined([sets for sets in seam_sets if sets is not None])
+    # One batch: the single link, the last view's links refitted (each from where it was)
+    # and the seam proposal's links.
     fits = _fit_superquadrics(
-        [points_m, *link_points], options, [None, *link_excluded], [None, *starts]
+        [points_m, *warm[0], *cold_points],
+        options,
+        [None, *warm[1], *cold_excluded],
+        [None, *starts, *[None] * len(cold_points)],
     )
-    links, again = fits[:1], [_over_all_points(fit, points_m, options) for fit in fits[1:]]
+    links = fits[:1]
+    rest = [_over_all_points(fit, points_m, options) for fit in fits[1:]]
+    again, rest = rest[: len(starts)], rest[len(starts) :]
+    for seam in seams:  # two links each
+        seam.first_round, rest = rest[:2], rest[2:]
     while len(links) < max_links:
-        proposal = _best_proposal(
-            points_m, dense, links, options, outlier_threshold_points, cluster_radius_m
-        )
+        proposals = _proposals(
+            points_m, links, options, outlier_threshold_points, cluster_radius_m,
+            seams if len(links) == 1 else None,
+        )  # fmt: skip
+        proposal = _best_proposal(points_m, dense, links, options, proposals)
         if proposal is None:
             break
         links = proposal
@@ -1008,22 +1022,38 @@ def fit_links(
     return links
 
 
+def _joined(
+    sets: list[tuple[list[FloatArray], list[FloatArray | None]]],
+) -> tuple[list[FloatArray], list[FloatArray | None]]:
+    """The link sets of several :func:`_link_sets` results, one after the other."""
+    return [p for points, _ in sets for p in points], [e for _, excluded in sets for e in excluded]
+
+
+@dataclass
+class _Proposal:
+    """A model with one more link: point labels [N] (link index per point), the evidence
+    gain per point it must exceed, and its links' first fit when already done."""
+
+    labels: IntArray
+    min_gain_nats: float
+    first_round: list[EMSResult] | None = None
+
+
 def _best_proposal(
     points_m: FloatArray,
     dense: NDArray[np.bool_],
     links: list[EMSResult],
     options: EMSOptions,
-    outlier_threshold_points: int,
-    cluster_radius_m: float,
+    proposals: list[_Proposal],
 ) -> list[EMSResult] | None:
-    """The first proposal of one more link whose evidence gain exceeds its threshold, both
-    fitted from the proposal's labels and refitted jointly (``dense``: :func:`_dense_mask` of
-    the points [N]); None when none is accepted."""
-    for labels, min_gain in _proposals(
-        points_m, links, options, outlier_threshold_points, cluster_radius_m
-    ):
-        threshold = min_gain * len(points_m)
-        proposal = _fit_jointly(points_m, dense, labels, options, 1)
+    """The first of the proposals whose evidence gain exceeds its threshold, both fitted
+    from the proposal's labels and refitted jointly (``dense``: :func:`_dense_mask` of the
+    points [N]); None when none is accepted."""
+    for candidate in proposals:
+        threshold = candidate.min_gain_nats * len(points_m)
+        proposal = candidate.first_round or _fit_jointly(
+            points_m, dense, candidate.labels, options, 1
+        )
         if proposal is None or _evidence_gain(points_m, links, proposal, options) <= threshold:
             continue
         refined = _fit_jointly(
@@ -1041,18 +1071,16 @@ def _proposals(
     options: EMSOptions,
     outlier_threshold_points: int,
     cluster_radius_m: float,
-) -> list[tuple[IntArray, float]]:
-    """The models with one more link to try: point labels [N] (link index per point) and the
-    evidence gain per point that the model must exceed. A gap seen from above is itself
-    evidence of two parts, so there any BIC gain will do; a step in height or an outlier
-    cluster must explain the points clearly better (``_CLEAR_GAIN_NATS`` per point), since an
-    imperfect fit of one part leaves such structure too."""
+    seams: list[_Proposal] | None = None,
+) -> list[_Proposal]:
+    """The models with one more link to try: the split of the largest link at its seam
+    (``seams``: those, when known) and a link on the largest cluster of unexplained points.
+    A gap seen from above is itself evidence of two parts, so there any BIC gain will do; a
+    step in height or an outlier cluster must explain the points clearly better
+    (``_CLEAR_GAIN_NATS`` per point), since an imperfect fit of one part leaves such
+    structure too."""
     labels = _assign(points_m, links)
-    largest = int(np.bincount(labels).argmax())
-    proposals = [
-        (np.where(mask, len(links), labels), 0.0 if at_gap else _CLEAR_GAIN_NATS)
-        for mask, at_gap in _split_masks(points_m, labels == largest)
-    ]
+    proposals = _seam_proposals(points_m, labels, len(links)) if seams is None else seams
     explained = np.max([link.inlier_probability for link in links], axis=0) >= 0.5
     unexplained = np.flatnonzero(~explained)
     if len(unexplained) >= outlier_threshold_points:
@@ -1060,8 +1088,18 @@ def _proposals(
         if len(cluster) >= outlier_threshold_points:
             with_cluster = labels.copy()
             with_cluster[cluster] = len(links)
-            proposals.append((with_cluster, _CLEAR_GAIN_NATS))
+            proposals = [*proposals, _Proposal(with_cluster, _CLEAR_GAIN_NATS)]
     return proposals
+
+
+def _seam_proposals(points_m: FloatArray, labels: IntArray, new_label: int) -> list[_Proposal]:
+    """The split of the largest label's points (labels [N]) at their seam
+    (:func:`_split_masks`), the far side taking ``new_label``."""
+    largest = int(np.bincount(labels).argmax())
+    return [
+        _Proposal(np.where(mask, new_label, labels), 0.0 if at_gap else _CLEAR_GAIN_NATS)
+        for mask, at_gap in _split_masks(points_m, labels == largest)
+    ]
 
 
 def _split_masks(points_m: FloatArray, own: FloatArray) -> list[tuple[FloatArray, bool]]:
@@ -1077,7 +1115,9 @@ def _split_masks(points_m: FloatArray, own: FloatArray) -> list[tuple[FloatArray
             0, np.pi, _STEP_DIRECTIONS, endpoint=False
         )
         directions = np.column_stack([np.cos(angles), np.sin(angles)])
-        steps = [_step_cut(footprint @ d, points_m[own, 2]) for d in directions]
+        by_height = np.argsort(points_m[own, 2])
+        flat, height = footprint[by_height], points_m[own, 2][by_height]
+        steps = [_step_cut(flat @ d, height) for d in directions]
         best = int(np.argmax([gain for gain, _ in steps]))
         if steps[best][0] <= 0:
             return []
@@ -1117,10 +1157,10 @@ def _gap_cut(along_m: FloatArray) -> float | None:
 
 def _step_cut(along_m: FloatArray, height_m: FloatArray) -> tuple[float, float]:
     """The best cut on coordinates [N] between two levels of the top height (the
-    ``_TOP_PERCENTILE`` of the heights [N] per ``_STEP_BIN_M`` bin): (the drop of the mean
-    absolute deviation of the bins' top from one median to one per side, the cut). The gain
-    is 0 where the cut falls outside the middle of the span or the levels differ by less
-    than ``_STEP_MIN_M``."""
+    ``_TOP_PERCENTILE`` of the heights [N], in ascending order, per ``_STEP_BIN_M`` bin):
+    (the drop of the mean absolute deviation of the bins' top from one median to one per
+    side, the cut). The gain is 0 where the cut falls outside the middle of the span or the
+    levels differ by less than ``_STEP_MIN_M``."""
     top, position = _top_profile(along_m, height_m)
     if len(top) == 0:
         return 0.0, 0.0
@@ -1149,13 +1189,15 @@ def _masked_median(values: FloatArray, mask: BoolArray) -> FloatArray:
 
 
 def _top_profile(along_m: FloatArray, height_m: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """The ``_TOP_PERCENTILE`` of the heights [N] in each ``_STEP_BIN_M`` bin of the
-    coordinates [N] holding at least ``_MIN_LINK_POINTS`` points, and the bins' lower edges:
-    ([B], [B])."""
+    """The ``_TOP_PERCENTILE`` of the heights [N] (in ascending order) in each
+    ``_STEP_BIN_M`` bin of the coordinates [N] holding at least ``_MIN_LINK_POINTS`` points,
+    and the bins' lower edges: ([B], [B])."""
     low, high = np.percentile(along_m, _SPAN_PERCENTILES)
     keep = (along_m >= low) & (along_m < high)
     index = ((along_m[keep] - low) / _STEP_BIN_M).astype(np.int64)
-    order = np.lexsort((height_m[keep], index))
+    # A stable sort by bin keeps each bin's heights in order (a radix sort for 16 bits).
+    narrow = np.uint16 if len(index) == 0 or index.max() < 2**16 else np.int64
+    order = np.argsort(index.astype(narrow), kind="stable")
     counts = np.bincount(index)
     rank = np.cumsum(counts) - counts + (_TOP_PERCENTILE / 100 * (counts - 1)).astype(np.int64)
     filled = np.flatnonzero(counts >= _MIN_LINK_POINTS)
