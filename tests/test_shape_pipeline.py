@@ -9,6 +9,7 @@ import pytest
 from simctx import TestContext
 from vistac.errors import DataError
 from vistac.objects import footprint_polygon, prism_distance_m, prism_surface_points, to_world_xy
+from vistac.plugins.shape import preprocess
 from vistac.plugins.shape.evaluation import shape_errors
 from vistac.plugins.shape.preprocess import (
     Open3dCloudProcessor,
@@ -58,6 +59,38 @@ def test_segment_keeps_the_object_standing_on_the_table(processor: Open3dCloudPr
     assert np.all(np.abs(segmented[:, 0]) < 0.07)
     assert np.all(np.abs(segmented[:, 1] - 0.45) < 0.07)
     assert segmented[:, 2].min() > 0.004, "table points were left in"
+
+
+def test_segment_merges_each_registered_views_object_clustered_once(
+    processor: Open3dCloudProcessor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    clustered: list[int] = []
+    cluster = preprocess.object_cluster
+    monkeypatch.setattr(
+        preprocess,
+        "object_cluster",
+        lambda points, *args: clustered.append(len(points)) or cluster(points, *args),
+    )
+    rng = np.random.default_rng(4)
+    views = [
+        # The gripper hovers at a new place in each view.
+        np.concatenate([table_points(rng), box_points(rng, (0.0, 0.45)), gripper])
+        for gripper in (box_points(rng, (x, 0.3), z0=0.12) for x in (-0.2, 0.2, 0.3))
+    ]
+    clouds: list[PointCloud] = []
+    counts = []
+    for view in views:
+        previous = PointCloud.merge(clouds) if clouds else None
+        clouds.append(processor.register(PointCloud(view), previous))
+        processor.segment(PointCloud.merge(clouds))
+        segmented = processor.segment(PointCloud.merge(clouds)).points_m
+        assert np.all(np.abs(segmented[:, 0]) < 0.07), "the hovering gripper was kept"
+        assert np.all(np.abs(segmented[:, 1] - 0.45) < 0.07)
+        counts.append(len(segmented))
+    assert len(clustered) == len(views), "each view is clustered once, when registered"
+    assert counts[-1] > counts[0], "the views' objects are merged"
+    processor.register(PointCloud(views[0]), None)  # a new perception starts over
+    assert len(processor.segment(PointCloud(views[0])).points_m) == counts[0]
 
 
 def test_dbscan_labels_match_open3d() -> None:
