@@ -849,9 +849,12 @@ def _fit_superquadrics(
     options: EMSOptions,
     excluded_m: Sequence[FloatArray | None],
     initial: Sequence[EMSResult | None],
+    cloud_m: FloatArray | None = None,
 ) -> list[EMSResult]:
     """:func:`fit_superquadric` of each set of points [N_k, 3] (with its excluded points and
-    initial fit, or None); the fits whose subsets have the same size run as one batch."""
+    initial fit, or None); the fits whose subsets have the same size run as one batch.
+    ``cloud_m`` [N, 3]: the cloud of which the sets are part, for the fits' inlier
+    probabilities (default: each fit's own points)."""
     groups: dict[int, list[int]] = {}
     for k, points in enumerate(points_m):
         groups.setdefault(min(len(points), options.max_fit_points), []).append(k)
@@ -862,6 +865,7 @@ def _fit_superquadrics(
             options,
             [excluded_m[k] for k in members],
             [initial[k] for k in members],
+            cloud_m,
         )
         results.update(zip(members, fits, strict=True))
     return [results[k] for k in range(len(points_m))]
@@ -872,9 +876,11 @@ def _fit_batch(
     options: EMSOptions,
     excluded_m: list[FloatArray | None],
     initial: list[EMSResult | None],
+    cloud_m: FloatArray | None = None,
 ) -> list[EMSResult]:
     """:func:`fit_superquadric` of sets of points whose subsets have one size, as one batch
-    (cold fits switch, warm-started ones do not)."""
+    (cold fits switch, warm-started ones do not; ``cloud_m``: as in
+    :func:`_fit_superquadrics`)."""
     subsets = [
         p[np.random.default_rng(0).permutation(len(p))[: options.max_fit_points]] for p in points_m
     ]
@@ -909,16 +915,24 @@ def _fit_batch(
             np.zeros(len(cold), dtype=np.int64),
             state.noise_var_m2,
         )
+    noise_var, nll = state.noise_var_m2.tolist(), state.nll.tolist()
     return [
-        _result(points, state.params[k], float(state.noise_var_m2[k]), float(state.nll[k]), options)
+        _result(points, state.params[k], noise_var[k], nll[k], options, cloud_m)
         for k, points in enumerate(points_m)
     ]
 
 
 def _result(
-    points_m: FloatArray, params: FloatArray, noise_var_m2: float, nll: float, options: EMSOptions
+    points_m: FloatArray,
+    params: FloatArray,
+    noise_var_m2: float,
+    nll: float,
+    options: EMSOptions,
+    cloud_m: FloatArray | None = None,
 ) -> EMSResult:
-    """The fit of params [14] to points [N, 3], with the inlier probabilities of all."""
+    """The fit of params [14] to points [N, 3], with the inlier probabilities of the points
+    of ``cloud_m`` [M, 3], of which they are part (default: of themselves)."""
+    cloud_m = points_m if cloud_m is None else cloud_m
     params = _canonical(params, options)
     superquadric, noise_m = to_superquadric(params), float(np.sqrt(noise_var_m2))
     return EMSResult(
@@ -928,7 +942,7 @@ def _result(
         nll=nll,
         fit_points_m=points_m,
         options=options,
-        **_cloud_fields(superquadric, noise_m, points_m, options),
+        **_cloud_fields(superquadric, noise_m, cloud_m, options),
     )
 
 
@@ -1002,10 +1016,9 @@ def fit_links(
         options,
         [None, *warm[1], *cold_excluded],
         [None, *starts, *[None] * len(cold_points)],
+        points_m,
     )
-    links = fits[:1]
-    rest = [_over_all_points(fit, points_m, options) for fit in fits[1:]]
-    again, rest = rest[: len(starts)], rest[len(starts) :]
+    links, again, rest = fits[:1], fits[1 : 1 + len(starts)], fits[1 + len(starts) :]
     for seam in seams:  # two links each
         seam.first_round, rest = rest[:2], rest[2:]
     while len(links) < max_links:
@@ -1265,10 +1278,9 @@ def _fit_jointly(
         sets = _link_sets(points_m, dense, labels, options)
         if sets is None:
             return None
-        fits = _fit_superquadrics(
-            sets[0], options, sets[1], [None] * len(sets[0]) if links is None else links
+        links = _fit_superquadrics(
+            sets[0], options, sets[1], [None] * len(sets[0]) if links is None else links, points_m
         )
-        links = [_over_all_points(fit, points_m, options) for fit in fits]
     return links
 
 
@@ -1298,11 +1310,6 @@ def _hidden_volume(dense_m: FloatArray, options: EMSOptions) -> FloatArray | Non
     columns = np.repeat(dense[None, :, :], len(levels), axis=0)
     columns[:, :, 2] *= levels[:, None]
     return columns.reshape(-1, 3)
-
-
-def _over_all_points(link: EMSResult, points_m: FloatArray, options: EMSOptions) -> EMSResult:
-    """``link`` with its inlier probabilities evaluated for all points [N, 3]."""
-    return replace(link, **_cloud_fields(link.superquadric, link.noise_m, points_m, options))
 
 
 # ---------------------------------------------------------------------------------------------
