@@ -43,7 +43,7 @@ def test_goal_push_plans_executes_and_reports_the_error(tmp_path: Path) -> None:
     start = np.array([x, y]) + rotation @ record["tracked_point_in_link_m"]
     assert np.allclose(start, record["start_belief_pose"][:2])  # the tracked body point
     moved_m = float(np.linalg.norm(np.array(record["true_final_xy"]) - start))
-    assert moved_m > 0.01  # the planned push reached the object
+    assert moved_m > 0.005  # the planned push reached the object (a miss leaves it still)
     belief = summary["belief"]
     final = np.array([belief["x_0"]["mean"], belief["y_0"]["mean"]])
     assert record["believed_error_m"] == pytest.approx(np.linalg.norm(final - record["goal"][:2]))
