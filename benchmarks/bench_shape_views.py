@@ -9,7 +9,8 @@ active 4, uniform 6, random 5). The active planner also stops by itself (its ent
 threshold); the views it took are reported too, and its time: per object the median over
 ``repeats`` runs that stop where the planner does (the views after the stop and the Chamfer
 scoring are not run). The two-link objects are also timed over exactly four views, the
-budget of the perception target (< 1 s), since at seed 0 the planner stops them after three.
+budget of the perception target (< 1 s), since the planner's own stop may come earlier or later
+(``perceive_shape.yaml`` caps it at four).
 """
 
 from __future__ import annotations
