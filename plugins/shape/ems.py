@@ -1009,8 +1009,6 @@ def fit_links(
     seam_sets = [_link_sets(points_m, dense, seam.labels, options) for seam in seams]
     seams = [seam for seam, sets in zip(seams, seam_sets, strict=True) if sets is not None]
     cold_points, cold_excluded = _joined([sets for sets in seam_sets if sets is not None])
-    # One batch: the single link, the last view's links refitted (each from where it was)
-    # and the seam proposal's links.
     fits = _fit_superquadrics(
         [points_m, *warm[0], *cold_points],
         options,
