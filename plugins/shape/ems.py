@@ -1008,7 +1008,8 @@ def fit_links(
     seams = _seam_proposals(points_m, np.zeros(len(points_m), dtype=np.int64), 1)
     seam_sets = [_link_sets(points_m, dense, seam.labels, options) for seam in seams]
     seams = [seam for seam, sets in zip(seams, seam_sets, strict=True) if sets is not None]
-    cold_points, cold_excluded = _joined([sets for sets in seam_sets if sets is not None])
+    cold = [sets for sets in seam_sets if sets is not None]
+    cold_points, cold_excluded = _joined(cold)
     fits = _fit_superquadrics(
         [points_m, *warm[0], *cold_points],
         options,
@@ -1017,8 +1018,8 @@ def fit_links(
         points_m,
     )
     links, again, rest = fits[:1], fits[1 : 1 + len(starts)], fits[1 + len(starts) :]
-    for seam in seams:  # two links each
-        seam.first_round, rest = rest[:2], rest[2:]
+    for seam, (points, _) in zip(seams, cold, strict=True):
+        seam.first_round, rest = rest[: len(points)], rest[len(points) :]
     while len(links) < max_links:
         proposals = _proposals(
             points_m, links, options, outlier_threshold_points, cluster_radius_m,
