@@ -303,6 +303,29 @@ def test_link_features_give_the_tcp_gap_to_each_footprint(
     assert got_m == pytest.approx(gap_m, abs=1e-12)
 
 
+def test_link_features_give_the_com_in_the_reference_frame() -> None:
+    """The CoM feature is the world CoM (link pose plus the link-frame CoM turned by the
+    link's yaw) relative to the TCP, in the frame of the push direction: a link at yaw 90 deg
+    with its CoM 20 mm along its own x, pushed along world +y from 50 mm behind its centre,
+    has the CoM 70 mm ahead on the push line (x) and on the line (y = 0)."""
+    link_pose = torch.tensor([0.1, 0.4, math.pi / 2], dtype=DTYPE)
+    states = torch.cat([link_pose, torch.tensor([0, 0, 0, 0.8, 0.3, 0.02, 0.0])]).to(DTYPE)
+    inputs = ProcessInput(
+        tcp=torch.tensor([0.1, 0.35, 0.0, 0.0, 0.02, 0.0], dtype=DTYPE),
+        pd_rad=torch.tensor(math.pi / 2, dtype=DTYPE),
+        is_pull=torch.tensor(0.0, dtype=DTYPE),
+        link=torch.tensor(0),
+        link_size_m=torch.tensor([[0.04, 0.02]], dtype=DTYPE),
+        link_offset=torch.zeros(1, 3, dtype=DTYPE),
+    )
+    features = nets.link_features(states[None], inputs)
+    com_m = features[0, 0, 12:14] * nets.SIZE_SCALE_M
+    torch.testing.assert_close(com_m, torch.tensor([0.07, 0.0], dtype=DTYPE))
+    states[9] = 0.01  # and 10 mm along the link's y (world -x): 10 mm left of the line (+y)
+    com_m = nets.link_features(states[None], inputs)[0, 0, 12:14] * nets.SIZE_SCALE_M
+    torch.testing.assert_close(com_m, torch.tensor([0.07, 0.01], dtype=DTYPE))
+
+
 def test_ff_rejects_another_link_count(tmp_path: Path) -> None:
     model = build(FFProcessModel, tmp_path, n_links=2)
     states, inputs = scenario((), 3)

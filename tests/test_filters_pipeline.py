@@ -125,7 +125,7 @@ def test_initial_belief_comes_from_the_shape_and_the_prior(tmp_path: Path) -> No
     stds = dict(zip(belief.names, belief.std, strict=True))
     assert values["x_0"] == 0.0 and values["y_0"] == 0.45
     assert values["m_0"] == pytest.approx(0.9) and stds["m_0"] == pytest.approx(0.4)
-    assert values["f_0"] == pytest.approx(0.3) and stds["com_x_0"] == pytest.approx(0.01)
+    assert values["f_0"] == pytest.approx(0.3) and stds["com_x_0"] == pytest.approx(0.028)
 
 
 def test_filter_needs_a_process_model(tmp_path: Path) -> None:

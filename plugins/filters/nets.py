@@ -9,7 +9,10 @@ invariant) and normalised by fixed scales, and every output is rotated back to t
 - link node [NODE_DIM]: motion slots (x, y, theta, vx, vy, omega of the link frame relative to
   the reference frame, / ``SIZE_SCALE_M``, ``SIZE_SCALE_M``, 1, ``SPEED_SCALE_MPS``,
   ``SPEED_SCALE_MPS``, ``RATE_SCALE_RADPS``), cos/sin of the relative theta, parameters
-  (m / ``MASS_SCALE_KG``, f / ``FRICTION_SCALE``, com_x, com_y / ``SIZE_SCALE_M``), half
+  (m / ``MASS_SCALE_KG``, f / ``FRICTION_SCALE``, com_x, com_y / ``SIZE_SCALE_M``), the CoM's
+  position in the reference frame / ``SIZE_SCALE_M`` (its offset from the push line is what
+  turns the link: the com_x, com_y of the link frame would need a product with the relative
+  theta, which small nets do not learn from a few hundred pushes), half
   extents (a1, a2) / ``SIZE_SCALE_M``, the gap from the TCP to the link's footprint box
   (:func:`box_gap_m`, capped at ``GAP_CAP_M``) / ``SIZE_SCALE_M``, is_pull, node type one-hot
   (link, robot, table). The gap tells the nets whether the fingers touch the link: from the
@@ -49,12 +52,12 @@ FORCE_SCALE_N = 2.0
 GAP_CAP_M = 0.05
 
 MOTION_DIM = 6
-NODE_DIM = 19
-"""motion 6, cos/sin 2, parameters 4, size 2, gap 1, is_pull 1, type 3."""
+NODE_DIM = 21
+"""motion 6, cos/sin 2, parameters 4, CoM position 2, size 2, gap 1, is_pull 1, type 3."""
 EDGE_DIM = 6
 """value (support: f_l, joint: f_j, robot: is_pull), type one-hot 3 (robot, joint, support),
 geometry 2 (joint: hinge minus receiver position, reference frame / SIZE_SCALE_M)."""
-LINK_FEATURE_DIM = 15
+LINK_FEATURE_DIM = 17
 ROBOT_FEATURE_DIM = 9
 
 _LINK, _ROBOT, _TABLE = 0, 1, 2
@@ -65,9 +68,10 @@ _OUTPUT_INIT_SCALE = 0.1
 _LINK_FEATURE_SCALES = (
     *(SIZE_SCALE_M, SIZE_SCALE_M, 1.0, SPEED_SCALE_MPS, SPEED_SCALE_MPS, RATE_SCALE_RADPS),
     *(1.0, 1.0, MASS_SCALE_KG, FRICTION_SCALE, SIZE_SCALE_M, SIZE_SCALE_M),
-    *(SIZE_SCALE_M, SIZE_SCALE_M, SIZE_SCALE_M),
+    *(SIZE_SCALE_M, SIZE_SCALE_M, SIZE_SCALE_M, SIZE_SCALE_M, SIZE_SCALE_M),
 )
-"""What each link feature is divided by (motion, cos/sin, parameters, size, gap)."""
+"""What each link feature is divided by (motion, cos/sin, parameters, CoM position, size,
+gap)."""
 _ROBOT_FEATURE_SCALES = (
     *(1.0, 1.0, 1.0, SPEED_SCALE_MPS, SPEED_SCALE_MPS, RATE_SCALE_RADPS),
     *(1.0, 1.0, 1.0),
@@ -198,6 +202,7 @@ def link_features(states: Tensor, inputs: ProcessInput, into: Turn | None = None
     xy, velocity = rotate(position_velocity, turn).unbind(-2)
     theta = wrap(pose[..., 2] - angle_l)
     size = inputs.link_size_m.unsqueeze(-3).expand(*pose.shape[:-1], 2)
+    parameters = layout.link_parameters(states)
     features = torch.cat(
         [
             xy,
@@ -205,7 +210,8 @@ def link_features(states: Tensor, inputs: ProcessInput, into: Turn | None = None
             velocity,
             pose[..., 5:6],
             torch.stack([torch.cos(theta), torch.sin(theta)], -1),
-            layout.link_parameters(states),
+            parameters,
+            xy + rotate(parameters[..., 2:4], theta),
             size,
             _tcp_gap_m(pose, inputs, size).unsqueeze(-1),
         ],
@@ -724,10 +730,10 @@ class GraphProcessNet(nn.Module):
         return torch.cat([features, tail.expand(*features.shape[:-1], 4)], -1)
 
     def _robot_node(self, inputs: ProcessInput) -> Tensor:
-        """[..., NODE_DIM]: motion 6, cos/sin 2, zero parameters 4, size 2 and gap 1, is_pull,
-        type."""
+        """[..., NODE_DIM]: motion 6, cos/sin 2, zero parameters 4, CoM position 2, size 2 and
+        gap 1, is_pull, type."""
         robot = robot_features(inputs)
-        zeros = robot.new_zeros(*robot.shape[:-1], 7)
+        zeros = robot.new_zeros(*robot.shape[:-1], 9)
         return _node(torch.cat([robot[..., :8], zeros, robot[..., 8:9]], -1), _ROBOT)
 
 
@@ -738,7 +744,7 @@ class GraphProcessNet(nn.Module):
 class FeedForwardProcessNet(nn.Module):
     """The baseline: one 3-layer MLP over the concatenated features of a fixed number of links.
 
-    Input per sigma point: the link features [15 L], robot features [9], joint frictions / scale
+    Input per sigma point: the link features [17 L], robot features [9], joint frictions / scale
     [L - 1], joint positions relative to the TCP in the reference frame / SIZE_SCALE_M
     [2 (L - 1)] and the acted link one-hot [L]. Output: the normalised deltas [6 L] and the
     normalised force [2]. Process noise as in :class:`GraphProcessNet`.
