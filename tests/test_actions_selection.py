@@ -165,6 +165,36 @@ def test_pushes_whose_approach_starts_inside_another_link_are_dropped(tmp_path: 
     assert not any(a.cp_m[0] > -0.01 and abs(a.cp_m[1] - 0.45) < 0.015 for a in actions)
 
 
+def _fingers_hit_box(push: Push, centre: tuple[float, float], half_m: tuple[float, float]) -> bool:
+    """Whether the closed fingers (20 x 24 mm about the TCP, 2 cm behind the contact) overlap
+    an axis-aligned box shrunk by 1 mm (a superquadric of exponent 0.1 rounds its corners)."""
+    heading = np.array([math.cos(push.pd_rad), math.sin(push.pd_rad)])
+    across = np.array([-heading[1], heading[0]])
+    grid = np.linspace(-1.0, 1.0, 41)
+    tcp = push.cp_m - 0.02 * heading
+    points = tcp + 0.01 * grid[:, None, None] * heading + 0.012 * grid[None, :, None] * across
+    inside = np.abs(points - np.array(centre)) < np.array(half_m) - 0.001
+    return bool(inside.all(-1).any())
+
+
+def test_pushes_whose_fingers_would_descend_onto_another_link_are_dropped(
+    tmp_path: Path,
+) -> None:
+    """Pushes on the top face of the left link near its end start just beside the taller
+    right link (1 cm gap): the TCP is clear of it, the fingers are not."""
+    left = _link(np.array([0.04, 0.02, 0.025]), (-0.045, 0.45))
+    right = _link(np.array([0.04, 0.05, 0.025]), (0.045, 0.45))
+    scene = _scene(left, right)
+
+    def pushes(**options: Any) -> list[Push]:
+        sampler = _sampler(tmp_path, samples=400, interactions=["push"], link=0, **options)
+        return sampler.sample(scene, np.random.default_rng(3))
+
+    assert not any(_fingers_hit_box(p, (0.045, 0.45), (0.04, 0.05)) for p in pushes())
+    tcp_only = pushes(finger_footprint_m=(0.0, 0.0))
+    assert any(_fingers_hit_box(p, (0.045, 0.45), (0.04, 0.05)) for p in tcp_only)
+
+
 def test_affordances_need_a_shape(tmp_path: Path) -> None:
     scene = Scene(_shape(_link(BOX, (0.0, 0.45))).cloud)
     with pytest.raises(DataError, match="no shape estimate"):

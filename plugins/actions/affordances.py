@@ -20,7 +20,7 @@ import logging
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, NonNegativeFloat
 from vistac.component import ComponentContext
 from vistac.errors import DataError
 from vistac.plugins.actions.outline import OutlineSampler, chord, point_on_outline
@@ -69,6 +69,20 @@ def inside_link(link: Superquadric, points_xy: FloatArray) -> FloatArray:
     return np.asarray(inside_outside(local, link.scale_m, link.exponents, link.taper) < 1.0)
 
 
+def finger_footprint(
+    centre_xy: FloatArray, heading_rad: float, size_m: tuple[float, float], per_side: int = 5
+) -> FloatArray:
+    """A grid of points [per_side**2, 2] over the rectangle of ``size_m`` (along, across
+    ``heading_rad``) centred at ``centre_xy`` [2], its edges included."""
+    along, across = np.meshgrid(
+        np.linspace(-0.5, 0.5, per_side) * size_m[0], np.linspace(-0.5, 0.5, per_side) * size_m[1]
+    )
+    c, s = np.cos(heading_rad), np.sin(heading_rad)
+    offsets = np.column_stack([c * along.ravel() - s * across.ravel(),
+                               s * along.ravel() + c * across.ravel()])  # fmt: skip
+    return np.asarray(centre_xy + offsets, dtype=np.float64)
+
+
 class SuperquadricAffordances(OutlineSampler):
     """Samples pushes and pulls on the mid-height outlines of the fitted superquadric links.
 
@@ -83,7 +97,11 @@ class SuperquadricAffordances(OutlineSampler):
         )
         approach_clearance_m: float = Field(
             0.02, ge=0, description="pre-contact TCP distance behind a push's contact point "
-            "(the executor's standoff_m + pusher_offset_m); must be outside every other link",
+            "(the executor's standoff_m + pusher_offset_m)",
+        )  # fmt: skip
+        finger_footprint_m: tuple[NonNegativeFloat, NonNegativeFloat] = Field(
+            (0.02, 0.024), description="(along, across the push) size of the closed fingers "
+            "about the TCP: where they descend must be clear of every link",
         )  # fmt: skip
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
@@ -149,14 +167,14 @@ class SuperquadricAffordances(OutlineSampler):
         rng: np.random.Generator,
     ) -> Push | None:
         """A push at ``point`` [2] along the inward normal plus jitter; None when the
-        approach would start inside another link."""
+        fingers would descend onto a link (a corner of a neighbouring link, say)."""
         jitter = np.radians(rng.uniform(-self.config.jitter_deg, self.config.jitter_deg))
         pd_rad = float(np.arctan2(-outward[1], -outward[0]) + jitter)
         start = point - self.config.approach_clearance_m * np.array(
             [np.cos(pd_rad), np.sin(pd_rad)]
         )
-        others = [link for i, link in enumerate(shape.links) if i != index]
-        if any(inside_link(link, start[None, :])[0] for link in others):
+        footprint = finger_footprint(start, pd_rad, self.config.finger_footprint_m)
+        if any(inside_link(link, footprint).any() for link in shape.links):
             return None
         return Push(point, pd_rad, self.config.speed_mps, self.config.duration_s, link=index)
 
