@@ -141,6 +141,25 @@ def test_unreachable_candidates_are_dropped(tmp_path: Path) -> None:
         assert 0.2 <= start[1] <= 0.47 and 0.2 <= end[1] <= 0.47
 
 
+def test_pushes_keep_the_object_inside_the_workspace(tmp_path: Path) -> None:
+    """An object 10 cm from the workspace's near edge (y 0.2) and 10 cm pushes: a push may
+    leave its centre no nearer the edge than object_margin_m (8 cm), so only pushes heading
+    less than asin(0.2) towards the edge are kept; without the margin some go further. An
+    object 5 cm from the edge, inside the margin already, may only be pushed no nearer."""
+
+    def centres_after(y_m: float, **options: Any) -> np.ndarray:
+        scene = _scene(_link(ELLIPSE, (0.0, y_m), exponents=1.0))
+        sampler = _sampler(tmp_path, samples=200, interactions=["push"], **options)
+        pushes = sampler.sample(scene, np.random.default_rng(6))
+        return np.array([y_m + 0.1 * math.sin(p.pd_rad) for p in pushes])
+
+    kept = centres_after(0.30)
+    assert kept.min() >= 0.28 - 1e-9 and kept.max() > 0.35
+    assert centres_after(0.30, object_margin_m=None).min() < 0.25
+    near = centres_after(0.25)
+    assert len(near) > 20 and near.min() >= 0.25 - 1e-9
+
+
 def test_pushes_keep_within_the_spread_of_the_chosen_direction(tmp_path: Path) -> None:
     link = _link(ELLIPSE, (0.0, 0.45), exponents=1.0)
     sampler = _sampler(tmp_path, samples=200, interactions=["push", "pull"],

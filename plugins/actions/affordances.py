@@ -99,6 +99,10 @@ class SuperquadricAffordances(OutlineSampler):
             0.02, ge=0, description="pre-contact TCP distance behind a push's contact point "
             "(the executor's standoff_m + pusher_offset_m)",
         )  # fmt: skip
+        object_margin_m: float | None = Field(
+            0.08, ge=0, description="as in actions.outline (there off by default): pushes "
+            "in every direction leave enough candidates to keep the object in reach",
+        )  # fmt: skip
         finger_footprint_m: tuple[NonNegativeFloat, NonNegativeFloat] = Field(
             (0.02, 0.024), description="(along, across the push) size of the closed fingers "
             "about the TCP: where they descend must be clear of every link",
@@ -123,6 +127,7 @@ class SuperquadricAffordances(OutlineSampler):
         """``samples`` draws of a kind in ``kinds``, a link and an outline point each."""
         links = self._links(shape)
         outlines = {index: link_outline(shape.links[index]) for index in links}
+        object_xy = np.asarray(shape.initial_poses, dtype=np.float64)[:, :2].mean(axis=0)
         actions: list[Action] = []
         for kind, index in zip(
             rng.choice(kinds, size=self.config.samples),
@@ -135,7 +140,7 @@ class SuperquadricAffordances(OutlineSampler):
                 if kind == "push"
                 else self._pull(outline, int(index), point, outward, rng)
             )
-            if action is not None and self._reachable(action):
+            if action is not None and self._reachable(action, object_xy):
                 actions.append(action)
         log.debug("%d of %d candidates kept", len(actions), self.config.samples)
         return actions

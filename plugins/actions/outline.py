@@ -59,6 +59,12 @@ class OutlineSampler(Component):
             (0.2, 0.8),
         )
         """((x min, x max), (y min, y max)): the gripper's path must stay inside."""
+        object_margin_m: float | None = Field(
+            None, ge=0, description="drop pushes that would leave the object's centre less "
+            "than this inside the workspace, or nearer its edge than it is where it is that "
+            "near already (it moves about as far as the pusher), so that later pushes can "
+            "still reach it; null: no check",
+        )  # fmt: skip
         pull_towards_rad: float = Field(
             -np.pi / 2, description="mean pull direction (-y: towards the robot)"
         )
@@ -82,31 +88,31 @@ class OutlineSampler(Component):
         actions: list[Action] = []
         for kind in kinds:
             action = self._push(hull_xy, rng) if kind == "push" else self._pull(hull_xy, rng)
-            if action is not None and self._reachable(action):
+            if action is not None and self._reachable(action, hull_xy.mean(axis=0)):
                 actions.append(action)
         return actions
 
-    def _reachable(self, action: Action) -> bool:
-        """Whether the interaction's start and end points lie in the workspace, and a push
-        heads where ``push_towards_rad`` allows."""
+    def _reachable(self, action: Action, object_xy: FloatArray) -> bool:
+        """Whether the interaction's start and end points lie in the workspace, a push heads
+        where ``push_towards_rad`` allows and leaves the object's centre ``object_xy`` [2]
+        ``object_margin_m`` inside the workspace (or, where it is nearer the edge already, no
+        nearer than before)."""
         towards = self.config.push_towards_rad
         if isinstance(action, Push) and towards is not None:
             off_rad = np.angle(np.exp(1j * (action.pd_rad - towards)))
             if abs(off_rad) > self.config.push_spread_rad:
                 return False
         start = action_point(action)
-        heading = np.array([np.cos(action.pd_rad), np.sin(action.pd_rad)])
-        end = start + heading * action.speed_mps * action.duration_s
-        (x_min, x_max), (y_min, y_max) = self.config.workspace_xy_m
-        points = np.stack([start, end])
-        return bool(
-            np.all(
-                (points[:, 0] >= x_min)
-                & (points[:, 0] <= x_max)
-                & (points[:, 1] >= y_min)
-                & (points[:, 1] <= y_max)
-            )
+        travel = np.array([np.cos(action.pd_rad), np.sin(action.pd_rad)]) * (
+            action.speed_mps * action.duration_s
         )
+        if not in_workspace(np.stack([start, start + travel]), self.config.workspace_xy_m):
+            return False
+        margin = self.config.object_margin_m
+        if not isinstance(action, Push) or margin is None:
+            return True
+        after = depth_inside(object_xy + travel, self.config.workspace_xy_m)
+        return after >= min(margin, depth_inside(object_xy, self.config.workspace_xy_m))
 
     def outline(self, points_m: FloatArray) -> FloatArray:
         """Counter-clockwise convex outline [K, 2] of the points above the table."""
@@ -150,6 +156,22 @@ class OutlineSampler(Component):
                     midpoint, float(pd), self.config.speed_mps, axis_rad, self.config.duration_s
                 )
         return None
+
+
+Workspace = tuple[tuple[float, float], tuple[float, float]]
+"""((x min, x max), (y min, y max)) in metres."""
+
+
+def in_workspace(points_xy: FloatArray, workspace_xy_m: Workspace) -> bool:
+    """Whether every point [N, 2] lies in the workspace."""
+    return all(depth_inside(point, workspace_xy_m) >= 0.0 for point in points_xy)
+
+
+def depth_inside(point_xy: FloatArray, workspace_xy_m: Workspace) -> float:
+    """Distance (m) of a point [2] inside the workspace's nearest edge (negative outside)."""
+    (x_min, x_max), (y_min, y_max) = workspace_xy_m
+    x, y = float(point_xy[0]), float(point_xy[1])
+    return min(x - x_min, x_max - x, y - y_min, y_max - y)
 
 
 def chord(hull_xy: FloatArray, point: FloatArray, angle_rad: float) -> tuple[FloatArray, float]:
