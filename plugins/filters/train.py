@@ -116,7 +116,11 @@ PRESETS: dict[str, TrainConfig] = {
         collect_overrides=("tree.sequence.0.repeat.max=8",), epochs=30, noise_epochs=3,
         filter_epochs=1, filter_sigma_points=16, filter_windows=8, batch_size=16, patience=10,
     ),
-    "paper": TrainConfig(objects="generated", runs_per_object=1, epochs=60, patience=8),
+    "paper": TrainConfig(
+        objects="generated", collect_overrides=("tree.sequence.0.repeat.max=8",), hidden=64,
+        epochs=60, noise_epochs=5, filter_epochs=1, filter_sigma_points=24, filter_windows=64,
+        patience=8,
+    ),
 }  # fmt: skip
 
 
