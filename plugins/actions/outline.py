@@ -28,6 +28,10 @@ MIN_OBJECT_POINTS = 20
 PULL_ATTEMPTS = 8
 
 
+Workspace = tuple[tuple[float, float], tuple[float, float]]
+"""((x min, x max), (y min, y max)) in metres."""
+
+
 class OutlineSampler(Component):
     """Samples pushes on, and pulls across, the convex outline of the observed object."""
 
@@ -54,7 +58,7 @@ class OutlineSampler(Component):
         finger_half_width_m: float = Field(
             0.03, ge=0, description="keeps grasps off the outline's ends"
         )
-        workspace_xy_m: tuple[tuple[float, float], tuple[float, float]] = (
+        workspace_xy_m: Workspace = (
             (-0.45, 0.45),
             (0.2, 0.8),
         )
@@ -84,11 +88,12 @@ class OutlineSampler(Component):
         # The segmented object cloud of the shape estimate when there is one (no clutter).
         cloud = scene.shape.cloud if scene.shape is not None else scene.cloud
         hull_xy = self.outline(cloud.points_m)
+        centre_xy = hull_xy.mean(axis=0)
         kinds = rng.choice(self.config.interactions, size=self.config.samples)
         actions: list[Action] = []
         for kind in kinds:
             action = self._push(hull_xy, rng) if kind == "push" else self._pull(hull_xy, rng)
-            if action is not None and self._reachable(action, hull_xy.mean(axis=0)):
+            if action is not None and self._reachable(action, centre_xy):
                 actions.append(action)
         return actions
 
@@ -156,10 +161,6 @@ class OutlineSampler(Component):
                     midpoint, float(pd), self.config.speed_mps, axis_rad, self.config.duration_s
                 )
         return None
-
-
-Workspace = tuple[tuple[float, float], tuple[float, float]]
-"""((x min, x max), (y min, y max)) in metres."""
 
 
 def in_workspace(points_xy: FloatArray, workspace_xy_m: Workspace) -> bool:
