@@ -14,6 +14,7 @@ from vistac.errors import DataError
 from vistac.plugins.filters.dual import (
     Belief,
     DualFilter,
+    bound_twist,
     cholesky_safe,
     feasible,
     liu_west,
@@ -447,6 +448,40 @@ def test_invalid_settings_are_rejected() -> None:
         DualFilter(LAYOUT, LinearProcess(), LinearObservation(), ukf_kappa=-3.0)
     with pytest.raises(ValueError, match="evidence_scale"):
         DualFilter(LAYOUT, LinearProcess(), LinearObservation(), evidence_scale=0.0)
+    with pytest.raises(ValueError, match="twist_bound"):
+        DualFilter(LAYOUT, LinearProcess(), LinearObservation(), twist_bound=(0.0, 1.0))
+
+
+def test_bound_twist_scales_the_speed_and_clips_the_rate() -> None:
+    pose = as_tensor([1.0, 2.0, 3.0, 0.3, 0.4, -5.0, 1.0, 2.0, 3.0, 0.03, 0.04, 0.5])
+    bounded = bound_twist(pose, 0.25, 2.0)
+    expected = [1.0, 2.0, 3.0, 0.15, 0.2, -2.0, 1.0, 2.0, 3.0, 0.03, 0.04, 0.5]
+    torch.testing.assert_close(bounded, as_tensor(expected))
+
+
+class RunawayProcess(LinearProcess):
+    """Doubles every velocity each step, which the positions do not show: a learned model
+    fed its own extrapolation, with the camera seeing positions only."""
+
+    def predict(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
+        prediction = super().predict(states, inputs, dt_s)
+        pose = torch.cat([states[..., :3], 2.0 * states[..., 3:6] + 0.1], -1)
+        return Prediction(pose, prediction.force_n, prediction.process_var)
+
+
+def test_a_twist_bound_keeps_a_runaway_model_physical() -> None:
+    generator = torch.Generator().manual_seed(12)
+    observation = as_tensor([0.0, 0.0, 0.0, 1.0, 1.0])
+    beliefs = {}
+    for bound in (None, (0.25, 2.0)):
+        dual = DualFilter(LAYOUT, RunawayProcess(), LinearObservation(), 50, twist_bound=bound)
+        belief = prior_belief()
+        for _ in range(20):
+            belief = dual.step(belief, make_inputs(), DT_S, observation, generator)
+        beliefs[bound] = belief.mean
+    assert float(beliefs[None][3:5].norm()) > 1e4  # unbounded, the velocity runs away
+    assert float(beliefs[(0.25, 2.0)][3:5].norm()) <= 0.25 + 1e-9
+    assert abs(float(beliefs[(0.25, 2.0)][5])) <= 2.0 + 1e-9
 
 
 def test_a_smaller_evidence_scale_learns_the_parameters_more_slowly() -> None:

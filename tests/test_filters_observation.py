@@ -476,3 +476,44 @@ def test_unexplained_entries_are_pixels_nearer_than_every_rendering() -> None:
     mask = unexplained_entries(observation, expected, 4, 0.01)
     assert mask.tolist() == [True, True, False, False, False, False]
     assert not bool(unexplained_entries(observation, expected, 4, None).any())
+
+
+def test_world_points_invert_the_projection() -> None:
+    proj = projector(cloud_at([(10, 20)], 0.04))
+    depth = torch.full((64 * 64,), CAMERA_HEIGHT_M - 0.03, dtype=DTYPE)
+    points = proj.world_points(depth).reshape(64, 64, 3)
+    x_m, y_m = world_xy(40, 12, 0.03)
+    torch.testing.assert_close(points[40, 12], torch.tensor([x_m, y_m, 0.03], dtype=DTYPE))
+    assert proj.object_top_m == pytest.approx(0.04)
+
+
+def test_robot_pixels_are_above_the_object_or_near_the_tcp() -> None:
+    proj = projector(cloud_at(block(range(30, 34), range(30, 34)), 0.04))
+    depth = torch.full((64, 64), CAMERA_HEIGHT_M, dtype=DTYPE)  # the table
+    depth[5, 5] = CAMERA_HEIGHT_M - 0.2  # the arm, high above the object
+    depth[50, 50] = CAMERA_HEIGHT_M - 0.03  # something object-high, far from the TCP
+    depth[40, 40] = CAMERA_HEIGHT_M - 0.03  # the same near the TCP: a finger
+    tcp_xy = torch.tensor(world_xy(40, 41, 0.03), dtype=DTYPE)  # ~ 1 mm from (40, 40)
+    robot = proj.robot_pixels(depth.reshape(-1), tcp_xy, 0.02, 0.01).reshape(64, 64)
+    assert bool(robot[5, 5]) and bool(robot[40, 40])
+    assert not bool(robot[50, 50]) and not bool(robot[20, 20])
+    assert int(robot.sum()) < 64  # the table far from the TCP is not the robot
+
+
+def test_model_unexplained_keeps_object_pixels_far_from_the_robot() -> None:
+    """A belief that has lost the object: the observed object is nearer than every rendering.
+    Its pixels must stay in the update unless the robot may be what the camera sees."""
+    pixels = block(range(30, 34), range(30, 34))
+    proj = projector(cloud_at(pixels, 0.04))
+    model = ProjectionObservationModel(StateLayout(1), proj, ObsNoiseNet())
+    states = torch.zeros(3, model.layout.size, dtype=DTYPE)
+    states[:, 0] = 0.15  # every sigma point 15 cm off to +x: the renderings miss the object
+    expected = model.expected(states, torch.zeros(3, 2, dtype=DTYPE))
+    observation = model.expected(torch.zeros(1, model.layout.size, dtype=DTYPE),
+                                 torch.zeros(1, 2, dtype=DTYPE))[0]  # fmt: skip
+    object_entries = torch.tensor([r * 64 + c for r, c in pixels])
+    far_tcp = torch.tensor([-0.3, 0.3], dtype=DTYPE)
+    assert not bool(model.unexplained(observation, expected, far_tcp)[object_entries].any())
+    near_tcp = torch.zeros(2, dtype=DTYPE)
+    assert bool(model.unexplained(observation, expected, near_tcp)[object_entries].all())
+    assert bool(model.unexplained(observation, expected)[object_entries].all())  # no TCP

@@ -71,7 +71,8 @@ def test_detect_change_reports_each_push(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.xfail(
     reason="measured AUROC 0.84 (12 + 12 pushes away from the robot, 3 seeds) with the shipped "
-    "push model (0.81 before the CoM feature); 0.625 (8 + 8) with pushes in any direction. A tilt of 0.2 rad changes a "
+    "push model (0.81 before the CoM feature); 0.625 (8 + 8) with pushes in any direction. "
+    "A tilt of 0.2 rad changes a "
     "finger's force by about 0.8 N on pushes up or down the slope, no more than the model's "
     "own error on some flat-table pushes (corner pushes score as low as -4)",
     strict=False,

@@ -211,6 +211,15 @@ class DualFilterComponent(Component):
         occlusion_margin_m: float | None = Field(
             0.01, gt=0, description="ignore pixels this much nearer than any projection (gripper)"
         )
+        max_link_speed_mps: float = Field(
+            0.25, gt=0, description="fastest a link can move (predicted sigma points are "
+            "brought back to it; about 10x the push speed)",
+        )
+        max_link_rate_radps: float = Field(2.5, gt=0, description="fastest a link can turn")
+        robot_radius_m: float | None = Field(
+            0.06, gt=0, description="only pixels that see above the object's top or within "
+            "this distance of the TCP may be ignored as the robot (None: any nearer pixel)",
+        )
         evidence_steps: float | None = Field(
             None, ge=1, description="steps of an interaction that count as one independent "
             "observation of the parameters; None: the noise checkpoint's (the process model's "
@@ -485,12 +494,14 @@ class DualFilterComponent(Component):
         self.background_m = projector.background_m
         config = self.config
         observation = ProjectionObservationModel(
-            self.layout, projector, self.noise_net, occlusion_margin_m=config.occlusion_margin_m
-        )
+            self.layout, projector, self.noise_net,
+            occlusion_margin_m=config.occlusion_margin_m, robot_radius_m=config.robot_radius_m,
+        )  # fmt: skip
         return DualFilter(
             self.layout, self.model, observation, config.sigma_points, config.liu_west_delta,
             min_ess_fraction=config.min_ess_fraction, pose_std_floor=config.pose_std_floor,
             evidence_scale=self.evidence_scale,
+            twist_bound=(config.max_link_speed_mps, config.max_link_rate_radps),
         )  # fmt: skip
 
     @property

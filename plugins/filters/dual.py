@@ -527,6 +527,17 @@ def joint_belief(
     return Belief(torch.cat([pose_mean, parameter_mean], -1), cov)
 
 
+def bound_twist(pose: Tensor, max_speed_mps: float, max_rate_radps: float) -> Tensor:
+    """Pose blocks [..., 6 L] with each link's planar speed scaled down to at most
+    ``max_speed_mps`` and its yaw rate clipped to +-``max_rate_radps``; the rest unchanged."""
+    links = pose.unflatten(-1, (-1, 6))
+    velocity, rate = links[..., 3:5], links[..., 5:6]
+    speed = torch.linalg.vector_norm(velocity, dim=-1, keepdim=True)
+    velocity = velocity * (max_speed_mps / speed.clamp_min(max_speed_mps))
+    rate = rate.clamp(-max_rate_radps, max_rate_radps)
+    return torch.cat([links[..., :3], velocity, rate], -1).flatten(-2)
+
+
 def check_prediction(prediction: Prediction, layout: StateLayout) -> None:
     """Raise DataError for a non-finite process model output or a negative process noise."""
     pose_names = layout.names[layout.pose_slice]
@@ -556,12 +567,16 @@ class DualFilter:
     points, not their parameters, decides the weights); ``pose_std_floor`` [6] (m, rad, m/s,
     rad/s per link entry, or None) is the least std of the predicted pose block: the unscented
     points must spread over at least about a pixel for the rendered depth to tell them apart.
-    An observation model with an ``unexplained(observation [..., k], expected [..., C, k]) ->
-    bool [..., k]`` method marks entries it cannot explain (the gripper in front of the
-    object); they get the noise variance ``UNEXPLAINED_VAR``. ``evidence_scale`` in (0, 1]
-    multiplies the parameter log likelihoods (a power likelihood): ``1 / tau`` counts ``tau``
-    steps as one independent observation, for a model whose errors persist over ``tau`` steps
-    (otherwise the same error, seen every step, makes the parameters overconfident).
+    An observation model with an ``unexplained(observation [..., k], expected [..., C, k],
+    tcp_xy_m [..., 2] | None) -> bool [..., k]`` method marks entries it cannot explain (the
+    gripper in front of the object); they get the noise variance ``UNEXPLAINED_VAR``.
+    ``evidence_scale`` in (0, 1] multiplies the parameter log likelihoods (a power
+    likelihood): ``1 / tau`` counts ``tau`` steps as one independent observation, for a model
+    whose errors persist over ``tau`` steps (otherwise the same error, seen every step, makes
+    the parameters overconfident).
+    ``twist_bound`` (m/s, rad/s, or None): the most a link can move; predicted points beyond
+    it are brought back (``bound_twist``), so that a learned model fed its own
+    out-of-distribution velocities cannot run away (the camera sees positions, not speeds).
     """
 
     def __init__(
@@ -577,6 +592,7 @@ class DualFilter:
         marginal_parameter_likelihood: bool = True,
         pose_std_floor: Sequence[float] | None = (0.006, 0.006, 0.06, 0.0, 0.0, 0.0),
         evidence_scale: float = 1.0,
+        twist_bound: tuple[float, float] | None = None,
     ) -> None:
         if sigma_points < 2:
             raise ValueError(f"sigma_points must be >= 2, got {sigma_points}")
@@ -606,6 +622,9 @@ class DualFilter:
             if floor.shape != (6,) or bool((floor < 0).any()):
                 raise ValueError(f"pose_std_floor: expected 6 values >= 0, got {pose_std_floor}")
             self.pose_var_floor = floor.square().repeat(layout.n_links)
+        if twist_bound is not None and min(twist_bound) <= 0:
+            raise ValueError(f"twist_bound: expected (m/s, rad/s) > 0, got {twist_bound}")
+        self.twist_bound = twist_bound
         self.last_log_likelihood: Tensor | None = None
         """After ``update``: [..., 2] eq. 37 per modality (see ``modality_log_likelihoods``)."""
 
@@ -641,15 +660,23 @@ class DualFilter:
         if process_var.dim() < prediction.pose.dim():
             process_var = process_var.unsqueeze(-2)
         pose = prediction.pose + process_noise * process_var.sqrt()
+        if self.twist_bound is not None:
+            pose = bound_twist(pose, *self.twist_bound)
         sigma_pred = torch.cat([pose, sigma[..., self.layout.parameter_slice]], -1)
         weights = sigma_pred.new_full(sigma_pred.shape[:-1], 1.0 / self.sigma_points)
         mean, cov = weighted_moments(sigma_pred, weights)
         return Belief(mean, cov), sigma_pred, prediction
 
     def update(
-        self, belief_pred: Belief, sigma_pred: Tensor, prediction: Prediction, observation: Tensor
+        self,
+        belief_pred: Belief,
+        sigma_pred: Tensor,
+        prediction: Prediction,
+        observation: Tensor,
+        tcp_xy_m: Tensor | None = None,
     ) -> Belief:
-        """Dual update against observation [..., k]: parameters, then the conditional pose."""
+        """Dual update against observation [..., k]: parameters, then the conditional pose.
+        tcp_xy_m [..., 2]: where the robot is, for the observation model's ``unexplained``."""
         require_finite(observation, "observation")
         noise_var = self.observation_model.noise_var(observation)
         require_finite(noise_var, "observation noise_var")
@@ -658,7 +685,7 @@ class DualFilter:
         expected = self.observation_model.expected(sigma_pred, prediction.force_n)
         unexplained = getattr(self.observation_model, "unexplained", None)
         if unexplained is not None:
-            mask = unexplained(observation, expected)
+            mask = unexplained(observation, expected, tcp_xy_m)
             noise_var = torch.where(mask, torch.full_like(noise_var, UNEXPLAINED_VAR), noise_var)
         parameters = sigma_pred[..., self.layout.parameter_slice]
         log_likelihood = self._log_likelihoods(
@@ -695,7 +722,7 @@ class DualFilter:
     ) -> Belief:
         """One filter step: ``predict`` then ``update``."""
         belief_pred, sigma_pred, prediction = self.predict(belief, inputs, dt_s, generator)
-        return self.update(belief_pred, sigma_pred, prediction, observation)
+        return self.update(belief_pred, sigma_pred, prediction, observation, inputs.tcp[..., :2])
 
     def _log_likelihoods(
         self,

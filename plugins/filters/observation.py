@@ -154,7 +154,12 @@ class DepthProjector:
         depth_m = (points - translation_wc) @ rotation_wc[:, 2]  # at the initial poses
         self._local, self._link_points = self._link_coordinates(points, links, poses0, depth_m)
         self._footprint = self._footprint_offsets(splat_px, self.intrinsics.width + 2 * splat_px)
-        self.background_m = self._table_depth(rotation_wc, translation_wc)
+        rays = torch.as_tensor(self.intrinsics.pixel_rays(), dtype=DTYPE)  # unit depth
+        self._rays_world = (rays @ rotation_wc.T).reshape(-1, 3)  # [H W, 3]
+        self._camera_origin_m = translation_wc
+        self.object_top_m = float(points[:, 2].max()) if points.numel() else 0.0
+        """Height of the highest cloud point above the table plane (m)."""
+        self.background_m = self._table_depth(translation_wc)
         self._padded_background = torch.nn.functional.pad(
             self.background_m, (splat_px,) * 4, value=math.inf
         )
@@ -255,14 +260,30 @@ class DepthProjector:
         steps = torch.arange(splat_px)
         return (steps[:, None] * row_stride + steps[None, :]).reshape(-1)
 
-    def _table_depth(self, rotation_wc: Tensor, translation_wc: Tensor) -> Tensor:
+    def _table_depth(self, translation_wc: Tensor) -> Tensor:
         """Depth of the plane z = 0 along each pixel's ray, ``max_range_m`` where the ray
         misses it or meets it beyond the range: [H, W]."""
-        rays = torch.as_tensor(self.intrinsics.pixel_rays(), dtype=DTYPE)  # unit depth
-        rise_m = rays @ rotation_wc[2]  # world z change per metre of depth
-        depth_m = -translation_wc[2] / rise_m
+        rise_m = self._rays_world[:, 2]  # world z change per metre of depth
+        depth_m = (-translation_wc[2] / rise_m).reshape(self.height_px, self.width_px)
         hits = depth_m.isfinite() & (depth_m > 0.0) & (depth_m <= self.max_range_m)
         return torch.where(hits, depth_m, torch.full_like(depth_m, self.max_range_m))
+
+    def world_points(self, depth_m: Tensor) -> Tensor:
+        """The world points the pixels of flattened depth images [..., H*W] (m) see:
+        [..., H*W, 3]."""
+        return self._camera_origin_m + depth_m.unsqueeze(-1) * self._rays_world
+
+    def robot_pixels(
+        self, depth_m: Tensor, tcp_xy_m: Tensor, radius_m: float, margin_m: float
+    ) -> Tensor:
+        """Pixels of flattened depth images [..., H*W] that may see the robot, given its TCP
+        position tcp_xy_m [..., 2]: bool [..., H*W]. The robot is whatever is higher than
+        the object's top (``object_top_m``) by more than ``margin_m`` (the arm, the palm), or
+        within ``radius_m`` of the TCP in the table plane (the fingers)."""
+        points = self.world_points(depth_m)
+        above = points[..., 2] > self.object_top_m + margin_m
+        near = (points[..., :2] - tcp_xy_m.unsqueeze(-2)).square().sum(-1) < radius_m**2
+        return above | near
 
     @property
     def height_px(self) -> int:
@@ -452,16 +473,22 @@ class ObsNoiseNet(nn.Module):
 
 
 def unexplained_entries(
-    observation: Tensor, expected: Tensor, n_depth: int, margin_m: float | None
+    observation: Tensor,
+    expected: Tensor,
+    n_depth: int,
+    margin_m: float | None,
+    candidates: Tensor | None = None,
 ) -> Tensor:
     """Depth entries (the first ``n_depth``) of observation [..., k] nearer than the nearest
-    of the expected observations [..., C, k] by more than ``margin_m``: bool [..., k]; all
-    False for ``margin_m`` None."""
+    of the expected observations [..., C, k] by more than ``margin_m``, and among
+    ``candidates`` (bool [..., n_depth]; None: any): bool [..., k]; all False for
+    ``margin_m`` None."""
     mask = torch.zeros(observation.shape, dtype=torch.bool, device=observation.device)
     if margin_m is None:
         return mask
     nearest = expected[..., :n_depth].amin(-2)
-    mask[..., :n_depth] = observation[..., :n_depth] < nearest - margin_m
+    nearer = observation[..., :n_depth] < nearest - margin_m
+    mask[..., :n_depth] = nearer if candidates is None else nearer & candidates
     return mask
 
 
@@ -474,8 +501,10 @@ class ProjectionObservationModel:
         projector: DepthProjector,
         noise_net: ObsNoiseNet,
         occlusion_margin_m: float | None = 0.01,
+        robot_radius_m: float | None = 0.06,
     ) -> None:
-        """occlusion_margin_m: see ``unexplained``; None keeps every pixel."""
+        """occlusion_margin_m, robot_radius_m: see ``unexplained``; a margin of None keeps
+        every pixel, a radius of None lets any pixel be an occluder."""
         if projector.n_links != layout.n_links:
             raise ValueError(
                 f"projector has {projector.n_links} links, layout {layout.n_links}"
@@ -486,6 +515,7 @@ class ProjectionObservationModel:
         self.projector = projector
         self.noise_net = noise_net
         self.occlusion_margin_m = occlusion_margin_m
+        self.robot_radius_m = robot_radius_m
 
     @property
     def size(self) -> int:
@@ -519,12 +549,22 @@ class ProjectionObservationModel:
         """Diagonal of R: [..., H*W + 2] -> [..., H*W + 2]."""
         return self.noise_net.noise_var(observation)
 
-    def unexplained(self, observation: Tensor, expected: Tensor) -> Tensor:
+    def unexplained(
+        self, observation: Tensor, expected: Tensor, tcp_xy_m: Tensor | None = None
+    ) -> Tensor:
         """Depth pixels nearer to the camera than every sigma point's rendering, by more than
-        ``occlusion_margin_m``: something the projection does not hold (the gripper, the arm)
-        hides the object or table there. observation [..., k], expected [..., C, k] ->
-        bool [..., k] (the tactile entries are never unexplained)."""
+        ``occlusion_margin_m``, that may see the robot (``DepthProjector.robot_pixels`` with
+        ``robot_radius_m`` about the TCP tcp_xy_m [..., 2]): the gripper or the arm hides the
+        object or table there. The robot test keeps a belief that has lost the object: the
+        object's own pixels, nearer than every rendering then, still pull it back. Without
+        a TCP or a radius any nearer pixel is an occluder. observation [..., k], expected
+        [..., C, k] -> bool [..., k] (the tactile entries are never unexplained)."""
+        n_depth = self.projector.height_px * self.projector.width_px
+        candidates = None
+        if tcp_xy_m is not None and self.robot_radius_m is not None and self.occlusion_margin_m:
+            candidates = self.projector.robot_pixels(
+                observation[..., :n_depth], tcp_xy_m, self.robot_radius_m, self.occlusion_margin_m
+            )
         return unexplained_entries(
-            observation, expected, self.projector.height_px * self.projector.width_px,
-            self.occlusion_margin_m,
-        )  # fmt: skip
+            observation, expected, n_depth, self.occlusion_margin_m, candidates
+        )
