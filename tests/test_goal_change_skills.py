@@ -68,6 +68,16 @@ def test_detect_change_reports_each_push(tmp_path: Path) -> None:
     assert summary["belief"]["m_0"]["mean"] == pytest.approx(known["m_0"]["mean"])
 
 
+def test_a_missing_prior_fails_before_anything_moves(tmp_path: Path) -> None:
+    out = tmp_path / "change"
+    args = ["-q", "run", str(SKILLS / "detect_change.yaml"), "--out", str(out),
+            "--set", f"components.filter.with.prior_from={tmp_path / 'missing.json'}"]
+    assert main(args) != 0
+    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    assert "prior_from: cannot read" in summary["error"] and "measured values" in summary["error"]
+    assert not (out / "episodes").exists() or not any((out / "episodes").iterdir())
+
+
 @pytest.mark.slow
 def test_tactile_likelihood_separates_flat_from_tilted_pushes(tmp_path: Path) -> None:
     """Fig. 18: AUROC of the tactile score over repeated pushes, flat vs tilted table (the

@@ -88,7 +88,8 @@ def load_summary_belief(path: Path) -> dict[str, dict[str, float]]:
     except (OSError, json.JSONDecodeError) as error:
         raise ConfigError(
             f"prior_from: cannot read {path}: {error}; give the summary.json of an earlier "
-            "run on this object, e.g. `vistac run skills/explore_push.yaml --out DIR`"
+            "run on this object, e.g. `vistac run skills/explore_push.yaml --out DIR`, or a "
+            'file of measured values: {"belief": {"m_0": {"mean": 0.8, "std": 0.02}, ...}}'
         ) from None
     belief = summary.get("belief") if isinstance(summary, dict) else None
     if not isinstance(belief, dict) or not belief:
@@ -245,6 +246,8 @@ class DualFilterComponent(Component):
         if config.noise_checkpoint is not None:
             load_checkpoint(self.noise_net, config.noise_checkpoint, "filters.dual", {})
         self.noise_net.to(DTYPE)
+        self.known = None if config.prior_from is None else load_summary_belief(config.prior_from)
+        """The ``prior_from`` belief, read before anything moves."""
         self.generator = torch.Generator().manual_seed(int(ctx.rng("filter").integers(2**31)))
         self.layout: StateLayout | None = None
         self.belief: Belief | None = None
@@ -268,9 +271,10 @@ class DualFilterComponent(Component):
             )
         pose_twist = np.column_stack([poses, np.zeros_like(poses)])
         self.belief = prior_belief(pose_twist, self.config.prior, self.layout)
-        if self.config.prior_from is not None:
-            known = load_summary_belief(self.config.prior_from)
-            self.belief = known_parameters(self.belief, self.layout, known, self.config.prior_from)
+        if self.known is not None and self.config.prior_from is not None:
+            self.belief = known_parameters(
+                self.belief, self.layout, self.known, self.config.prior_from
+            )
         self.prior = self.belief
         return self._public()
 
