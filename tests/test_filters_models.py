@@ -161,11 +161,25 @@ def test_gnn_pose_only_prediction_equals_the_full_one_without_the_force(tmp_path
     assert not pose_only.force_n.any() and full.force_n.abs().sum() > 0
 
 
+def test_gnn_force_vanishes_without_friction_load(tmp_path: Path) -> None:
+    """The GNN's tactile force is the links' friction loads g m f times their node vectors:
+    frictionless or massless links push back with nothing, whatever the net's weights."""
+    model = build(GNNProcessModel, tmp_path, hidden=32)
+    states, inputs = scenario((2,), 2, link=1)
+    params = StateLayout(2).link_parameters(states)  # a view into states
+    assert model.predict(states, inputs, DT_S).force_n.abs().min() > 0
+    params[..., 1] = 0.0
+    assert not model.predict(states, inputs, DT_S).force_n.any()
+    params[..., 1], params[..., 0] = 0.3, 0.0
+    assert not model.predict(states, inputs, DT_S).force_n.any()
+
+
 def reference_graph_step(
     net: GraphProcessNet, states: Tensor, inputs: ProcessInput
 ) -> Prediction:
     """Algorithm 1 written link by link for one batch element (states [C, n]): the cause
-    pass breadth-first from the robot, the effect pass back from the deepest links."""
+    pass breadth-first from the robot, the effect pass back from the deepest links, then the
+    force as the links' friction loads times ``tac_net`` of their nodes."""
     layout = StateLayout((states.shape[-1] + 1) // 11)
     n_links, acted = layout.n_links, int(inputs.link)
     links = net._link_nodes(states, inputs)  # [C, L, D]
@@ -206,7 +220,9 @@ def reference_graph_step(
                 edge = joint_edge(min(link, child), link)
                 message = message + net._message(nodes[child], nodes[link], edge)
             nodes[link] = net._update(nodes[link], message)
-    force = net.tac_net(net._message(nodes[acted], robot, robot_edge))
+    params = layout.link_parameters(states)  # the friction load g m f of each link
+    load_n = 9.81 * params[..., 0] * params[..., 1] / nets.FORCE_SCALE_N  # [C, L]
+    force = sum(load_n[:, link, None] * net.tac_net(nodes[link]) for link in range(n_links))
     delta = torch.stack(nodes, -2)[..., : nets.MOTION_DIM] - links[..., : nets.MOTION_DIM]
     return Prediction(
         pose=nets.integrate(states, delta, inputs, DT_S),
