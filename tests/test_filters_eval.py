@@ -28,6 +28,8 @@ from vistac.plugins.filters.evaluate import (
     plan_runs,
     planner_override,
     pose_change_errors,
+    product_posterior_mean,
+    reference_records,
     run_dir_of,
     tables_markdown,
     tracking_table,
@@ -171,7 +173,11 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
         "model": "gnn", "selector": "uniform", "estimate_parameters": True
     }  # fmt: skip
     cell = tables["tables"]["homogeneous"]["push"]
-    assert list(cell) == ["A-GNN", "U-GNN", "A-Analytical"]
+    assert list(cell) == ["A-GNN", "U-GNN", "A-Analytical", "Prior", "m·f known"]
+    truth = json.loads((out / "runs/rect2/a-gnn/summary.json").read_text())["ground_truth"]
+    m_0 = truth["parameters"]["m_0"]  # the references are scored on the same object
+    assert cell["Prior"]["m_0"] == pytest.approx(abs(0.9 - m_0) / 1.4)
+    assert cell["m·f known"]["CoM_0"] == 0.0
     ranges = tables["ranges"]
     assert ranges["CoM"] == pytest.approx(parameter_ranges()["CoM"])
     for key, label in (("a-gnn", "A-GNN"), ("a-analytical", "A-Analytical")):
@@ -357,3 +363,36 @@ def test_tables_have_one_column_per_variant() -> None:
     curves = nrmse_by_interaction(records, RANGES, [*labels, "GNN-fixed"])
     assert curves["R-GNN"] == pytest.approx([0.1])
     assert curves["GNN-fixed"] == pytest.approx([0.5 / 1.4])  # m error 1.0 / 1.4, f error 0
+
+
+def test_mass_and_friction_from_their_product_match_monte_carlo() -> None:
+    """E[m | m f] and E[f | m f] for uniform m in [0.2, 1.6] kg and f in [0.1, 0.5], against
+    the mean of samples whose product falls in a narrow band; at the corners of the ranges
+    the product pins both down."""
+    rng = np.random.default_rng(0)
+    mass, friction = rng.uniform(0.2, 1.6, 2_000_000), rng.uniform(0.1, 0.5, 2_000_000)
+    for product in (0.05, 0.24, 0.5):
+        band = np.abs(mass * friction - product) < 0.002
+        m_hat, f_hat = product_posterior_mean(product)
+        assert m_hat == pytest.approx(mass[band].mean(), rel=0.01)
+        assert f_hat == pytest.approx(friction[band].mean(), rel=0.01)
+        assert m_hat * f_hat != pytest.approx(product, rel=0.01)  # E[m] E[f] != E[m f]
+    assert product_posterior_mean(0.2 * 0.1) == pytest.approx((0.2, 0.1))
+    assert product_posterior_mean(1.6 * 0.5) == pytest.approx((1.6, 0.5))
+
+
+def test_reference_columns_score_the_prior_and_a_known_product() -> None:
+    records = [_record("A-GNN", 1.0, 0.001), _record("U-GNN", 1.2, 0.001)]
+    records[0]["parameters"] |= {"CoM_0": (0.01, 0.03)}
+    prior = Prior(mass_kg=(0.5, 0.4), friction=(0.2, 0.1), com_m=(0.0, 0.02))
+    references = reference_records(records, prior)
+    assert [r["variant"] for r in references] == ["Prior", "m·f known"]  # one per object
+    truth_m, truth_f = records[0]["parameters"]["m_0"][1], records[0]["parameters"]["f_0"][1]
+    assert references[0]["parameters"] == {
+        "m_0": (0.5, truth_m), "f_0": (0.2, truth_f), "CoM_0": (0.0, 0.03)
+    }  # fmt: skip
+    known = references[1]["parameters"]
+    assert known["CoM_0"] == (0.03, 0.03)
+    assert (known["m_0"][0], known["f_0"][0]) == product_posterior_mean(truth_m * truth_f)
+    tables = nrmse_tables([*records, *references], RANGES, ["A-GNN", "Prior", "m·f known"])
+    assert list(tables["homogeneous"]["push"]) == ["A-GNN", "Prior", "m·f known"]
