@@ -29,9 +29,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 from vistac.plugins.filters.nets import box_gap_m, perp, rotate
-from vistac.plugins.filters.state import Prediction, ProcessInput, StateLayout
+from vistac.plugins.filters.state import GRAVITY_MPS2, Prediction, ProcessInput, StateLayout
 
-GRAVITY_MPS2 = 9.81
 _TINY = 1e-12
 
 

@@ -40,7 +40,13 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
-from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput, StateLayout
+from vistac.plugins.filters.state import (
+    DTYPE,
+    GRAVITY_MPS2,
+    Prediction,
+    ProcessInput,
+    StateLayout,
+)
 
 SIZE_SCALE_M = 0.05
 SPEED_SCALE_MPS = 0.025
@@ -49,7 +55,6 @@ MASS_SCALE_KG = 1.0
 FRICTION_SCALE = 0.3
 JOINT_FRICTION_SCALE_NM = 0.5
 FORCE_SCALE_N = 2.0
-GRAVITY_MPS2 = 9.81
 GAP_CAP_M = 0.05
 
 MOTION_DIM = 6

@@ -23,6 +23,7 @@ from torch import Tensor
 POSE_FIELDS: tuple[str, ...] = ("x", "y", "theta", "vx", "vy", "omega")
 LINK_PARAMETER_FIELDS: tuple[str, ...] = ("m", "f", "com_x", "com_y")
 DTYPE = torch.float64
+GRAVITY_MPS2 = 9.81
 
 
 @dataclass(frozen=True)
