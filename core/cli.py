@@ -293,7 +293,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(f"{run['status']}: {run['variant']} on {run['object']}: {run['reason']}")
     print(f"evaluated {len(report['runs']) - len(skipped)} runs; eval.json, tables and plots "
           f"in {args.out}")  # fmt: skip
-    return 0
+    return 1 if any(run["status"] == "failed" for run in skipped) else 0
 
 
 def _eval_touch(args: argparse.Namespace) -> int:

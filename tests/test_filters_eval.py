@@ -212,6 +212,34 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
     assert list(report["variants"]) == ["U-GNN"]
 
 
+def test_eval_exits_1_when_a_run_fails(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A corrupted checkpoint fails every run: the eval says which and exits 1, not 0."""
+    folder = tmp_path / "checkpoints"
+    folder.mkdir()
+    (folder / "gnn_push.pt").write_bytes(b"not a state dict")
+    sidecar = ROOT / "skills/checkpoints/gnn_push.pt.json"
+    (folder / "gnn_push.pt.json").write_text(sidecar.read_text(encoding="utf-8"))
+    code = main([
+        "-q", "eval", str(ROOT / "skills/explore_push.yaml"), "--out", str(tmp_path / "eval"),
+        "--objects", str(ROOT / "skills/objects/rect2.yaml"), "--variants", "u-gnn",
+        "--checkpoints", str(folder), *FAST,
+    ])  # fmt: skip
+    assert code == 1
+    assert "failed: U-GNN on rect2" in capsys.readouterr().out
+
+
+def test_eval_names_a_bad_prior(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    skill = tmp_path / "explore.yaml"
+    text = (ROOT / "skills/explore_push.yaml").read_text(encoding="utf-8")
+    skill.write_text(text.replace("{noise_checkpoint: checkpoints/obs_noise_push.pt}",
+                                  "{prior: {mass_kg: [0.9]}}"))  # fmt: skip
+    code = main(["-q", "eval", str(skill), "--out", str(tmp_path / "eval"),
+                 "--objects", str(ROOT / "skills/objects/rect2.yaml")])  # fmt: skip
+    assert code == 2
+    assert "prior is invalid (each family is [mean, std]" in capsys.readouterr().err
+    assert not (tmp_path / "eval").exists()
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

@@ -467,7 +467,10 @@ def skill_prior(skill: Path) -> Prior:
             try:
                 return Prior(**((component.get("with") or {}).get("prior") or {}))
             except (TypeError, ValidationError) as error:
-                raise ConfigError(f"{skill}: the filters.dual prior is invalid: {error}") from None
+                raise ConfigError(
+                    f"{skill}: the filters.dual prior is invalid (each family is [mean, std], "
+                    f"e.g. mass_kg: [0.9, 0.4]): {error}"
+                ) from None
     return Prior()
 
 
@@ -806,7 +809,8 @@ def plot_curves(curves: dict[str, list[float]], path: Path) -> None:
     axes.set_xlabel("interaction")
     axes.set_ylabel("overall NRMSE")
     axes.grid(alpha=0.3)
-    axes.legend()
+    if axes.lines:  # no finished run, no line
+        axes.legend()
     figure.tight_layout()
     figure.savefig(path, dpi=100)
     plt.close(figure)
