@@ -575,7 +575,7 @@ class GraphProcessNet(nn.Module):
 
     The tactile force: where paper 1 maps the effect message towards the robot to it, here
     ``tac_net`` maps each updated link node to a vector that scales the link's friction load
-    ``g m f``, and the force is their sum. In a quasi-static push or pull the fingers balance
+    ``g m f``, and the force is their sum. In a quasi-static push the fingers balance
     the table's friction on the links, so the force is about ``g sum(m f)`` (the median
     within 15 % in the generated pushes), and the product m f is what the force tells the
     filter; read off the message, the product had to be learned, and was learned poorly.
