@@ -98,9 +98,11 @@ def test_acted_link_is_the_true_link_nearest_the_tcp_at_contact() -> None:
     assert acted_link(_trajectory("one link")) == 0
 
 
-def test_a_failed_round_run_leaves_its_object_out(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+def test_a_failed_run_leaves_its_object_out(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
+    """In every collection, the seed and validation ones too: one object the arm could not
+    push must not end a training of hours."""
     def collect(skill: Path, objects: list[Path], out: Path, config: object) -> list[Path]:
         if objects[0].stem == "tri2":
             raise DataError("collection failed on tri2 before any episode")
@@ -111,10 +113,9 @@ def test_a_failed_round_run_leaves_its_object_out(
     collector = active.Collector(SKILLS / "explore_active.yaml", load_preset("tiny"),
                                  ACTIVE_PRESETS["tiny"])  # fmt: skip
     objects = [SKILLS / "objects" / f"{name}.yaml" for name in ("rect1", "tri2", "rect3")]
-    kept = collector.run(objects, tmp_path, "random", 1, seed=0, strict=False)
+    kept = collector.run(objects, tmp_path, "random", 1, seed=0)
     assert [t.source for t in kept] == ["rect1", "rect3"]
-    with pytest.raises(DataError, match="tri2"):
-        collector.run(objects, tmp_path, "random", 1, seed=0)
+    assert "left out tri2.yaml" in caplog.text
 
 
 class _OffsetModel:

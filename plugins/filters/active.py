@@ -22,7 +22,8 @@ one fixed data set:
    belief update of the previous one, i.e. the k most informative actions in sequence rather
    than the paper's top k of one candidate set. Uniform and random data do not depend on the
    model, so all models share them. A run that records nothing (an action the arm may not
-   carry out, say) leaves its object out of that round, with a warning.
+   carry out, say) leaves its object out of that collection, the seed and validation ones
+   included, with a warning.
 
 ``trajectories_to_threshold`` is the size of everything collected of that interaction (seed
 included) when the validation error first reached the threshold: the bars of Fig. 10. Each
@@ -273,11 +274,11 @@ class Collector:
         count: int,
         seed: int,
         model: tuple[ModelName, Interaction, Path] | None = None,
-        strict: bool = True,
     ) -> list[Trajectory]:
         """Collect under ``folder`` (finished runs are reused); ``model``: (name, interaction,
-        checkpoint folder) of the model the skill's filter predicts with. ``strict``: a run
-        that records nothing is an error; otherwise that object is left out (logged)."""
+        checkpoint folder) of the model the skill's filter predicts with. An object whose run
+        records nothing is left out, with a warning (``train_active`` stops when a whole
+        collection has nothing of an interaction)."""
         trajectories: list[Trajectory] = []
         for path in objects:
             overrides = [*self.active.collect_overrides,
@@ -291,9 +292,7 @@ class Collector:
             try:
                 trajectories += load_trajectories(collect(self.skill, [path], folder, config))
             except DataError as error:
-                if strict:
-                    raise
-                log.warning("left out %s this round: %s", path.name, error)
+                log.warning("left out %s from %s: %s", path.name, folder.name, error)
         return trajectories
 
     @staticmethod
@@ -395,7 +394,7 @@ def _collect_round(
         folder = work.parent / "data" / selection / f"round_{index:02d}"
     seed = collector.config.seed + 1 + index
     count = collector.active.per_round
-    new = collector.run(objects, folder, selection, count, seed, model, strict=False)
+    new = collector.run(objects, folder, selection, count, seed, model)
     return [t for t in new if t.kind == kind]
 
 
