@@ -40,8 +40,9 @@ test: setup
 test-all: setup
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 
+# TRAIN_REPORTS="DIR/train.json ...": also report those trainings (time, trajectories).
 bench: setup
-	$(BIN)/python benchmarks/run_all.py --out BENCHMARKS.md
+	$(BIN)/python benchmarks/run_all.py --out BENCHMARKS.md $(TRAIN_REPORTS:%=--train-report %)
 
 lint: setup
 	$(BIN)/ruff check core plugins tests benchmarks examples

@@ -1,6 +1,7 @@
 """Run every benchmark and write BENCHMARKS.md (median of repeats, machine, peers).
 
 Usage: python benchmarks/run_all.py [--out BENCHMARKS.md] [--repeats N]
+                                   [--train-report DIR/train.json ...]
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import Row
+from training_report import render as render_training
 
 MODULES = (
     "bench_sim",
@@ -64,12 +66,21 @@ def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--out", type=Path, default=Path("BENCHMARKS.md"))
     parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument(
+        "--train-report", type=Path, action="append", default=[],
+        help="a train.json of `vistac train` to report (training time, trajectories)",
+    )  # fmt: skip
     args = parser.parse_args()
+    missing = [str(path) for path in args.train_report if not path.is_file()]
+    if missing:
+        print(f"error: no such train.json: {', '.join(missing)} (write one with `vistac train "
+              "SKILL --out DIR`)", file=sys.stderr)  # fmt: skip
+        return 2
     rows: list[Row] = []
     for name in MODULES:
         print(f"running {name} ...", flush=True)
         rows += importlib.import_module(name).run(args.repeats)
-    text = render(rows, args.repeats)
+    text = render(rows, args.repeats) + render_training(args.train_report)
     args.out.write_text(text)
     print(text)
     return 0
