@@ -420,6 +420,7 @@ def paired_fit_noise(
 
 def fitted_parameters(
     expected: Tensor,
+    observation: Tensor,
     mean_residual: Tensor,
     noise_var: Tensor,
     parameters: Tensor,
@@ -428,9 +429,12 @@ def fitted_parameters(
     """What ``marginal_log_likelihood`` needs of the C points: the fit of expected [..., C, k]
     on parameters [..., C, p], ``marginal_inverse_var`` and the fit's sampling noise
     (``paired_fit_noise`` when the points were made from the antithetic draws pairs
-    [..., C, q], else ``iid_fit_noise``). mean_residual [..., k] is ``mean_i(h_i) - z``."""
+    [..., C, q], else ``iid_fit_noise``). mean_residual [..., k] is ``mean_i(h_i) - z`` for
+    the observation z [..., k]."""
     fit = parameter_fit(parameters, expected)
-    centred_sums = expected.var(-2, correction=0) * expected.shape[-2]
+    count = expected.shape[-2]  # (torch.var along this axis took 3 ms of a 13 ms step)
+    squares = torch.linalg.vecdot(expected, expected, dim=-2)
+    centred_sums = squares - count * (mean_residual + observation).square()
     inverse_var = marginal_inverse_var(fit, centred_sums, noise_var)
     weights = inverse_var * mean_residual
     fit_noise = None if pairs is None else paired_fit_noise(expected, pairs, inverse_var, weights)
@@ -943,7 +947,7 @@ class DualFilter:
         mean_residual = expected.mean(-2) - observation
         if self.marginal_parameter_likelihood:
             fit, inverse_var, fit_noise = fitted_parameters(
-                expected, mean_residual, noise_var, parameters, pairs
+                expected, observation, mean_residual, noise_var, parameters, pairs
             )
         squared = squared_residuals(expected, observation, consume=True)
         modality_weights = modality_inverse_var(noise_var, n_tactile)
