@@ -300,13 +300,18 @@ def test_an_uninformative_observation_keeps_the_parameter_belief_for_500_steps(
     torch.testing.assert_close(belief.cov[6:, 6:], prior_belief().cov[6:, 6:], rtol=0, atol=1e-9)
 
 
+def assert_standard_moments(noise: Tensor) -> None:
+    """Sample mean exactly 0 and covariance exactly I of noise [B, C, n]."""
+    batch, count, size = noise.shape
+    mean, cov = weighted_moments(noise, torch.full((batch, count), 1 / count, dtype=DTYPE))
+    torch.testing.assert_close(mean, torch.zeros(batch, size, dtype=DTYPE), rtol=0, atol=1e-13)
+    eye = torch.eye(size, dtype=DTYPE).expand(batch, -1, -1)
+    torch.testing.assert_close(cov, eye, rtol=0, atol=1e-12)
+
+
 def test_standardised_noise_has_zero_mean_and_unit_covariance_when_it_can() -> None:
     draws = torch.randn(3, 50, 10, generator=torch.Generator().manual_seed(1), dtype=DTYPE)
-    noise = standardise_noise(draws)
-    mean, cov = weighted_moments(noise, torch.full((3, 50), 1 / 50, dtype=DTYPE))
-    torch.testing.assert_close(mean, torch.zeros(3, 10, dtype=DTYPE), rtol=0, atol=1e-13)
-    eye = torch.eye(10, dtype=DTYPE).expand(3, -1, -1)
-    torch.testing.assert_close(cov, eye, rtol=0, atol=1e-12)
+    assert_standard_moments(standardise_noise(draws))
     few = draws[:, :8]  # C = 8 draws cannot span 10 dimensions
     torch.testing.assert_close(standardise_noise(few), few, rtol=0, atol=0)
 
@@ -314,10 +319,7 @@ def test_standardised_noise_has_zero_mean_and_unit_covariance_when_it_can() -> N
 def test_antithetic_noise_has_exact_moments_zero_odd_moments_and_a_stable_prefix() -> None:
     draws = torch.randn(3, 60, 10, generator=torch.Generator().manual_seed(1), dtype=DTYPE)
     noise = antithetic_noise(draws)
-    mean, cov = weighted_moments(noise, torch.full((3, 60), 1 / 60, dtype=DTYPE))
-    torch.testing.assert_close(mean, torch.zeros(3, 10, dtype=DTYPE), rtol=0, atol=1e-13)
-    eye = torch.eye(10, dtype=DTYPE).expand(3, -1, -1)
-    torch.testing.assert_close(cov, eye, rtol=0, atol=1e-12)
+    assert_standard_moments(noise)
     third = torch.einsum("bci,bcj,bck->bijk", noise, noise, noise)
     torch.testing.assert_close(third, torch.zeros_like(third), rtol=0, atol=1e-12)
     # the first columns do not depend on the columns drawn behind them
