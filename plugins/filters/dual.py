@@ -216,14 +216,18 @@ def _points(belief: Belief, white: Tensor) -> Tensor:
     return belief.mean.unsqueeze(-2) + white @ cholesky_safe(belief.cov).transpose(-1, -2)
 
 
-def _antithetic_jointly(state_noise: Tensor, process_noise: Tensor) -> tuple[Tensor, Tensor]:
+def _antithetic_jointly(
+    state_noise: Tensor, process_noise: Tensor
+) -> tuple[Tensor, Tensor, Tensor | None]:
     """State [..., C, n] and process [..., C, m] noise made antithetic together (``_pairs``),
     so that their sample correlation is exactly 0 too; the state part is ``antithetic_noise``
-    of the state noise. Where that cannot be, the process noise is left as it is."""
+    of the state noise. Returns both and the joint pairs [..., C, n + m]; where joint pairs
+    cannot be, the process noise is left as it is and the pairs are None."""
     joint = _pairs(torch.cat([state_noise, process_noise], -1))
     if joint is None:
-        return antithetic_noise(state_noise), process_noise
-    return joint[..., : state_noise.shape[-1]], joint[..., state_noise.shape[-1] :]
+        return antithetic_noise(state_noise), process_noise, None
+    size = state_noise.shape[-1]
+    return joint[..., :size], joint[..., size:], joint
 
 
 def _standard_normal(
@@ -851,16 +855,27 @@ class DualFilter:
         state_noise [..., C, n], process_noise [..., C, 6L] -> predicted belief, predicted
         sigma points [..., C, n] (unprojected parameters) and the model's Prediction.
         """
+        state_white, process_white, _ = _antithetic_jointly(state_noise, process_noise)
+        return self._propagate_white(belief, inputs, dt_s, state_white, process_white)
+
+    def _propagate_white(
+        self,
+        belief: Belief,
+        inputs: ProcessInput,
+        dt_s: float,
+        state_white: Tensor,
+        process_white: Tensor,
+    ) -> tuple[Belief, Tensor, Prediction]:
+        """``propagate`` from draws already made antithetic (``_antithetic_jointly``)."""
         belief.check_finite(self.layout.names)
-        state_noise, process_noise = _antithetic_jointly(state_noise, process_noise)
-        sigma = _points(belief, state_noise)
+        sigma = _points(belief, state_white)
         model_states = project_feasible(sigma, self.layout, inputs.link_size_m)
         prediction = self.process_model.predict(model_states, inputs, dt_s)
         check_prediction(prediction, self.layout)
         process_var = prediction.process_var
         if process_var.dim() < prediction.pose.dim():
             process_var = process_var.unsqueeze(-2)
-        pose = prediction.pose + process_noise * process_var.sqrt()
+        pose = prediction.pose + process_white * process_var.sqrt()
         if self.twist_bound is not None:
             pose = bound_twist(pose, *self.twist_bound)
         sigma_pred = torch.cat([pose, sigma[..., self.layout.parameter_slice]], -1)
@@ -925,9 +940,10 @@ class DualFilter:
         generator: torch.Generator,
     ) -> Belief:
         """One filter step: ``predict`` then ``update``."""
-        draws = self._draws(belief, generator)
-        belief_pred, sigma_pred, prediction = self.propagate(belief, inputs, dt_s, *draws)
-        pairs = _pairs(torch.cat(draws, -1))
+        state_white, process_white, pairs = _antithetic_jointly(*self._draws(belief, generator))
+        belief_pred, sigma_pred, prediction = self._propagate_white(
+            belief, inputs, dt_s, state_white, process_white
+        )
         return self.update(
             belief_pred, sigma_pred, prediction, observation, inputs.tcp[..., :2], pairs
         )
