@@ -18,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import Row
 from training_report import render as render_training
+from vistac.allocator import keep_freed_memory
 
 MODULES = (
     "bench_sim",
@@ -76,6 +77,7 @@ def main() -> int:
         print(f"error: no such train.json: {', '.join(missing)} (write one with `vistac train "
               "SKILL --out DIR`)", file=sys.stderr)  # fmt: skip
         return 2
+    keep_freed_memory()  # as the vistac command does
     rows: list[Row] = []
     for name in MODULES:
         print(f"running {name} ...", flush=True)

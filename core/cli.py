@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from vistac import __version__
+from vistac.allocator import keep_freed_memory
 from vistac.errors import ConfigError, VistacError
 from vistac.pluginmanager import Plugins, load_plugins
 
@@ -460,6 +461,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     _setup_logging(args.quiet, args.verbose)
+    keep_freed_memory()
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)
