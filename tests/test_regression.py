@@ -23,9 +23,12 @@ SHORT_MODE: dict[str, list[str]] = yaml.safe_load((HERE / "short_mode.yaml").rea
 CASES = sorted(SKILLS.glob("*.yaml")) + sorted(HERE.glob("*.yaml"))
 CASES = [c for c in CASES if c.name != "short_mode.yaml"]
 DISPLACEMENT_TOL_M = 0.005
-VIEWS_TOL = 1
-"""The entropy planner's stop is a threshold on a float sum: the thread count of earlier tests
-(torch, open3d) can move it by one view."""
+VIEWS_REL_TOL = 0.15
+"""Each look's stop is a threshold on a float sum and the next eye an argmax, so last-bit
+differences (thread scheduling in torch and open3d) can move a look by one view; on a skill
+with several looks these compound (explore_active's 7 looks took 18, 19 and 20 views on one
+machine). 15 % (at least one view) still catches a planner that always stops at once or never
+stops."""
 FORCE_REL_TOL = 0.2
 
 
@@ -54,7 +57,7 @@ def _digest(summary: dict[str, Any]) -> dict[str, Any]:
 
 def _compare(got: dict[str, Any], want: dict[str, Any]) -> None:
     assert got["status"] == want["status"]
-    assert abs(got["views"] - want["views"]) <= VIEWS_TOL
+    assert abs(got["views"] - want["views"]) <= max(1, round(VIEWS_REL_TOL * want["views"]))
     assert got.get("touch_class") == want.get("touch_class")
     assert len(got["episodes"]) == len(want["episodes"])
     for g, w in zip(got["episodes"], want["episodes"], strict=True):
