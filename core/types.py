@@ -364,3 +364,14 @@ class GaussianBelief:
             name: {"mean": float(m), "std": float(s)}
             for name, m, s in zip(self.names, self.mean, self.std, strict=True)
         }
+
+    def correlation_dict(self, decimals: int = 4) -> dict[str, object]:
+        """``{"names": [n], "matrix": [n][n]}``: the correlation of the entries (0 between an
+        entry of std 0 and the others), rounded; with ``as_dict`` it gives back the
+        covariance."""
+        std = self.std
+        scale = np.where(std > 0, std, 1.0)
+        correlation = self.cov / np.outer(scale, scale)
+        np.fill_diagonal(correlation, 1.0)
+        matrix = np.round(np.clip(correlation, -1.0, 1.0), decimals)
+        return {"names": list(self.names), "matrix": matrix.tolist()}

@@ -11,14 +11,19 @@ import numpy as np
 import pytest
 import torch
 from simctx import TestContext
+from vistac.behaviours.belief import record_belief
 from vistac.errors import ConfigError
 from vistac.plugins.actions.change import assess, auroc, window_means
 from vistac.plugins.actions.icem import ICEMController, colored_noise
-from vistac.plugins.filters.component import known_parameters, load_summary_belief
+from vistac.plugins.filters.component import (
+    known_parameters,
+    load_summary_belief,
+    load_summary_correlation,
+)
 from vistac.plugins.filters.dual import Belief, modality_log_likelihoods
 from vistac.plugins.filters.state import DTYPE, StateLayout
 from vistac.protocols import Scene
-from vistac.types import PointCloud, Push, ShapeEstimate, Superquadric
+from vistac.types import GaussianBelief, PointCloud, Push, ShapeEstimate, Superquadric
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -154,6 +159,56 @@ def test_auroc_known_values() -> None:
     assert auroc([-1, -3], [-2]) == 0.5
     with pytest.raises(ValueError, match="at least one score"):
         auroc([], [1.0])
+
+
+def test_correlation_dict_known_values() -> None:
+    cov = np.array([[4.0, -2.0, 0.0], [-2.0, 4.0, 0.0], [0.0, 0.0, 0.0]])
+    got = GaussianBelief(np.zeros(3), cov, ("a", "b", "c")).correlation_dict()
+    assert got == {"names": ["a", "b", "c"],
+                   "matrix": [[1.0, -0.5, 0.0], [-0.5, 1.0, 0.0], [0.0, 0.0, 1.0]]}  # fmt: skip
+
+
+def test_prior_from_keeps_the_correlation_of_the_earlier_belief(tmp_path: Path) -> None:
+    """m and f of a pushed object are known through their product: a later run must get
+    them correlated as they were, or m f is far wider than the earlier run knew it."""
+    layout = StateLayout(1)
+    rng = np.random.default_rng(0)
+    root = rng.normal(size=(layout.size, layout.size))
+    cov = root @ root.T / layout.size + 0.01 * np.eye(layout.size)
+    earlier = GaussianBelief(rng.normal(size=layout.size), cov, tuple(layout.names))
+    results: dict[str, Any] = {}
+    record_belief(results, earlier)
+    path = tmp_path / "summary.json"
+    path.write_text(json.dumps(results), encoding="utf-8")
+    start = Belief(torch.zeros(layout.size, dtype=DTYPE), torch.eye(layout.size, dtype=DTYPE))
+    belief = known_parameters(
+        start, layout, load_summary_belief(path), path, load_summary_correlation(path)
+    )
+    params = layout.parameter_slice
+    np.testing.assert_allclose(belief.cov[params, params].numpy(), cov[params, params],
+                               rtol=0, atol=1e-3 * float(np.abs(cov).max()))  # fmt: skip
+    assert float(belief.cov[params, : params.start].abs().max()) == 0.0  # not with the pose
+    # Without the correlation (a file of measured values): uncorrelated, the same std.
+    uncorrelated = known_parameters(start, layout, load_summary_belief(path), path)
+    block = uncorrelated.cov[params, params].numpy()
+    np.testing.assert_allclose(block, np.diag(np.diag(cov[params, params])), atol=1e-9)
+    # A pair the file leaves out is uncorrelated; rounding that breaks positive
+    # definiteness is mended.
+    names = layout.names[params]
+    results["belief_correlation"] = {
+        "names": [names[0], names[1], names[2]],
+        "matrix": [[1.0, 1.0, -1.0], [1.0, 1.0, 1.0], [-1.0, 1.0, 1.0]],
+    }
+    path.write_text(json.dumps(results), encoding="utf-8")
+    mended = known_parameters(
+        start, layout, load_summary_belief(path), path, load_summary_correlation(path)
+    )
+    assert bool((torch.linalg.eigvalsh(mended.cov) > 0).all())
+    assert float(mended.cov[params, params][0, 3]) == 0.0
+    results["belief_correlation"] = {"names": [names[0]], "matrix": [[1.0, 0.5]]}
+    path.write_text(json.dumps(results), encoding="utf-8")
+    with pytest.raises(ConfigError, match="belief_correlation"):
+        load_summary_correlation(path)
 
 
 def test_prior_from_an_earlier_summary(tmp_path: Path) -> None:

@@ -13,6 +13,15 @@ from vistac.types import GaussianBelief
 
 log = logging.getLogger(__name__)
 
+
+def record_belief(results: dict[str, object], belief: GaussianBelief) -> None:
+    """The summary's latest belief: ``belief`` (mean and std per entry) and
+    ``belief_correlation`` (``GaussianBelief.correlation_dict``), which a later run's
+    ``prior_from`` reads back."""
+    results["belief"] = belief.as_dict()
+    results["belief_correlation"] = belief.correlation_dict()
+
+
 DEFAULT_MAX_STD = {"m_*": 0.05, "f_j_*": 0.03, "f_*": 0.03, "com_*": 0.005}
 
 
@@ -33,7 +42,7 @@ class UpdateBelief(SkillBehaviour):
         filter_ = self.component("filter")
         belief = filter_.update(self.read("episode"))
         self.write("belief", belief)
-        self.run.results["belief"] = belief.as_dict()
+        record_belief(self.run.results, belief)
         self.run.results.setdefault("belief_history", []).append(belief.as_dict())
         steps = getattr(filter_, "step_history", None)
         if callable(steps):  # filters that keep a per-step trace (plots of belief bands)

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from py_trees.common import Status
 from pydantic import Field
+from vistac.behaviours.belief import record_belief
 from vistac.component import ComponentConfig
 from vistac.errors import ConfigError, DataError
 from vistac.plugins.actions.icem import wrap_angle
@@ -56,7 +57,7 @@ def located_belief(behaviour: SkillBehaviour, std_m: float | None) -> GaussianBe
         )
     belief = filter_.observe_positions(shape, std_m)
     behaviour.write("belief", belief)
-    behaviour.run.results["belief"] = belief.as_dict()  # the summary's latest belief
+    record_belief(behaviour.run.results, belief)
     return belief
 
 

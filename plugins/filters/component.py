@@ -81,16 +81,20 @@ def prior_belief(pose_twist: FloatArray, prior: Prior, layout: StateLayout) -> B
     return Belief(torch.as_tensor(mean, dtype=DTYPE), torch.diag(torch.as_tensor(std**2)))
 
 
-def load_summary_belief(path: Path) -> dict[str, dict[str, float]]:
-    """The ``belief`` entry of a run's summary.json: name -> {"mean", "std"}."""
+def _read_summary(path: Path) -> Any:
     try:
-        summary = json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError) as error:
         raise ConfigError(
             f"prior_from: cannot read {path}: {error}; give the summary.json of an earlier "
             "run on this object, e.g. `vistac run skills/explore_push.yaml --out DIR`, or a "
             'file of measured values: {"belief": {"m_0": {"mean": 0.8, "std": 0.02}, ...}}'
         ) from None
+
+
+def load_summary_belief(path: Path) -> dict[str, dict[str, float]]:
+    """The ``belief`` entry of a run's summary.json: name -> {"mean", "std"}."""
+    summary = _read_summary(path)
     belief = summary.get("belief") if isinstance(summary, dict) else None
     if not isinstance(belief, dict) or not belief:
         raise ConfigError(
@@ -100,10 +104,43 @@ def load_summary_belief(path: Path) -> dict[str, dict[str, float]]:
     return belief
 
 
+def load_summary_correlation(path: Path) -> tuple[list[str], FloatArray] | None:
+    """The ``belief_correlation`` of a run's summary.json (``GaussianBelief.correlation_dict``):
+    entry names [n] and the correlation matrix [n, n]; None when the file has none (a file of
+    measured values may leave it out)."""
+    summary = _read_summary(path)
+    entry = summary.get("belief_correlation") if isinstance(summary, dict) else None
+    if entry is None:
+        return None
+    try:
+        names = [str(name) for name in entry["names"]]
+        matrix = np.asarray(entry["matrix"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        matrix = np.empty(0)
+    if (
+        matrix.shape != (len(names), len(names))
+        or not np.isfinite(matrix).all()
+        or np.abs(matrix).max(initial=0.0) > 1.0
+    ):
+        raise ConfigError(
+            f"prior_from: {path} has a belief_correlation that is not "
+            '{"names": [n names], "matrix": [n x n correlations in -1..1]}; fix it or remove it '
+            "(the parameters are then taken as uncorrelated)"
+        )
+    return names, matrix
+
+
 def known_parameters(
-    belief: Belief, layout: StateLayout, known: dict[str, dict[str, float]], source: Path
+    belief: Belief,
+    layout: StateLayout,
+    known: dict[str, dict[str, float]],
+    source: Path,
+    correlation: tuple[list[str], FloatArray] | None = None,
 ) -> Belief:
-    """``belief`` with every parameter's mean and std taken from ``known`` (uncorrelated)."""
+    """``belief`` with every parameter's mean and std taken from ``known``, correlated as
+    ``correlation`` says (``load_summary_correlation``; the m and f of a pushed object are
+    known mostly through their product, which only their correlation keeps) and else
+    uncorrelated, and uncorrelated with the pose."""
     names = layout.names[layout.parameter_slice]
     missing = [name for name in names if name not in known]
     if missing:
@@ -112,13 +149,32 @@ def known_parameters(
             f"another number of links than the {layout.n_links} seen now"
         )
     mean, cov = belief.mean.clone(), belief.cov.clone()
-    for name in names:
-        index = layout.index(name)
-        mean[index] = float(known[name]["mean"])
-        cov[index, :] = 0.0
-        cov[:, index] = 0.0
-        cov[index, index] = max(float(known[name]["std"]), 1e-6) ** 2
+    params = layout.parameter_slice
+    std = torch.tensor([max(float(known[name]["std"]), 1e-6) for name in names], dtype=DTYPE)
+    mean[params] = torch.tensor([float(known[name]["mean"]) for name in names], dtype=DTYPE)
+    cov[params, :] = 0.0
+    cov[:, params] = 0.0
+    cov[params, params] = std[:, None] * _parameter_correlation(names, correlation) * std
     return Belief(mean, cov)
+
+
+def _parameter_correlation(
+    names: Sequence[str], correlation: tuple[list[str], FloatArray] | None
+) -> torch.Tensor:
+    """The correlation [p, p] of the parameters ``names`` (0 for a pair the file does not
+    give), made positive definite (rounding in the file can break that)."""
+    result = np.eye(len(names))
+    if correlation is not None:
+        given, matrix = correlation
+        pairs = [(i, given.index(name)) for i, name in enumerate(names) if name in given]
+        mine = np.array([i for i, _ in pairs], dtype=np.int64)
+        theirs = np.array([j for _, j in pairs], dtype=np.int64)
+        result[np.ix_(mine, mine)] = matrix[np.ix_(theirs, theirs)]
+        values, vectors = np.linalg.eigh(0.5 * (result + result.T))
+        result = (vectors * np.clip(values, 1e-6, None)) @ vectors.T
+        scale = np.sqrt(np.diag(result))
+        result = result / np.outer(scale, scale)
+    return torch.as_tensor(result, dtype=DTYPE)
 
 
 def position_update(belief: Belief, rows: Sequence[int], measured: torch.Tensor,
@@ -194,7 +250,8 @@ class DualFilterComponent(Component):
         prior_from: SkillPath | None = Field(
             None,
             description="summary.json of an earlier run on this object: its belief's parameter "
-            "means and std replace the prior (an object whose parameters are known)",
+            "means, std and correlation replace the prior (an object whose parameters are "
+            "known)",
         )
         depth_size_px: int = Field(64, gt=0, description="side of the observed depth image")
         splat_px: int = Field(1, ge=1, description="pixels each projected point covers")
@@ -248,6 +305,9 @@ class DualFilterComponent(Component):
         self.noise_net.to(DTYPE)
         self.known = None if config.prior_from is None else load_summary_belief(config.prior_from)
         """The ``prior_from`` belief, read before anything moves."""
+        self.known_correlation = (
+            None if config.prior_from is None else load_summary_correlation(config.prior_from)
+        )
         self.generator = torch.Generator().manual_seed(int(ctx.rng("filter").integers(2**31)))
         self.layout: StateLayout | None = None
         self.belief: Belief | None = None
@@ -273,8 +333,9 @@ class DualFilterComponent(Component):
         self.belief = prior_belief(pose_twist, self.config.prior, self.layout)
         if self.known is not None and self.config.prior_from is not None:
             self.belief = known_parameters(
-                self.belief, self.layout, self.known, self.config.prior_from
-            )
+                self.belief, self.layout, self.known, self.config.prior_from,
+                self.known_correlation,
+            )  # fmt: skip
         self.prior = self.belief
         return self._public()
 
