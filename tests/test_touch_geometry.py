@@ -83,6 +83,28 @@ def test_box_sdf_and_its_grid_match_the_analytic_distance() -> None:
     assert np.allclose(grid_distance, expected, atol=0.004)
 
 
+def test_grid_sdf_interpolates_a_linear_field_exactly_and_extends_outside() -> None:
+    """Trilinear interpolation reproduces a linear distance inside the grid; outside, the
+    nearest grid value plus the distance to the grid box; ``distance`` agrees with the full
+    query."""
+    axes = np.arange(5) * 0.1
+    x, y, z = np.meshgrid(axes, axes, axes, indexing="ij")
+    distance = 0.3 * x - 0.2 * y + 0.1 * z
+    normals = np.broadcast_to(np.array([0.3, -0.2, 0.1]) / np.sqrt(0.14), (5, 5, 5, 3))
+    grid = GridSDF(np.zeros(3), 0.1, distance, normals)
+    rng = np.random.default_rng(0)
+    inside = rng.uniform(0.0, 0.4, size=(2, 7, 3))
+    got, got_normals = grid(inside)
+    assert got.shape == (2, 7) and got_normals.shape == (2, 7, 3)
+    np.testing.assert_allclose(got, inside @ [0.3, -0.2, 0.1], atol=1e-6)
+    np.testing.assert_allclose(got_normals, normals[0, 0, 0] + 0 * inside, atol=1e-6)
+    outside = np.array([[0.6, 0.2, 0.2], [-0.3, -0.4, 0.0]])
+    expected = np.array([0.3 * 0.4 - 0.04 + 0.02 + 0.2, 0.0 + 0.5])
+    np.testing.assert_allclose(grid(outside)[0], expected, atol=1e-6)
+    np.testing.assert_allclose(grid.distance(inside), got, atol=1e-12)
+    np.testing.assert_allclose(grid.distance(outside), expected, atol=1e-6)
+
+
 def test_transform_sdf_evaluates_in_the_world_frame() -> None:
     mesh = unit_sphere_mesh(0.1)
     pose = np.eye(4)

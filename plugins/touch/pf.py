@@ -202,12 +202,14 @@ class TouchParticleFilter(Component):
         for index in np.unique(particles.cls):
             rows = np.flatnonzero(particles.cls == index)
             rotation, translation = particles.rotation[rows], particles.translation[rows]
-            local = np.einsum("nkj,nji->nki", points[None] - translation[:, None], rotation)
-            distance, predicted = self.classes[index].grid(local)
+            local = (points[None] - translation[:, None]) @ rotation  # [n, K, 3]
+            grid = self.classes[index].grid
             if normals is None:
+                distance = grid.distance(local)
                 result[rows] = miss_log_likelihood(distance, self.config.sigma_distance_m)
                 continue
-            observed = np.einsum("kj,nji->nki", normals, rotation)
+            distance, predicted = grid(local)
+            observed = normals @ rotation  # [n, K, 3]
             error = np.linalg.norm(observed - predicted, axis=-1)
             result[rows] = contact_log_likelihood(
                 distance, error, self.config.sigma_distance_m, self.config.sigma_normal
