@@ -26,16 +26,20 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class RunResult:
-    """Outcome of a run. ``status``: success | failure | error | interrupted."""
+    """Outcome of a run. ``status``: success | failure | error | interrupted;
+    ``error_exit_code``: the exit code of the error (2 for invalid input found while the run
+    built its components, e.g. a ``prior_from`` file that is not a summary)."""
 
     status: str
     out_dir: Path
     summary: dict[str, Any] = field(default_factory=dict)
     error: str | None = None
+    error_exit_code: int = 1
 
     @property
     def exit_code(self) -> int:
-        return {"success": 0, "interrupted": 130}.get(self.status, 1)
+        codes = {"success": 0, "interrupted": 130, "error": self.error_exit_code}
+        return codes.get(self.status, 1)
 
 
 def _versions() -> dict[str, str]:
@@ -107,11 +111,12 @@ class Scheduler:
             result.error = (
                 str(exc) if isinstance(exc, VistacError) else f"{type(exc).__name__}: {exc}"
             )
+            result.error_exit_code = exc.exit_code if isinstance(exc, VistacError) else 1
             log.debug("run failed", exc_info=True)
         finally:
             stop_errors = self.ctx.stop_motion()
         if stop_errors:
-            result.status = "error"
+            result.status, result.error_exit_code = "error", 1
             result.error = "; ".join(filter(None, [result.error, *stop_errors]))
         result.summary = self._finish(result, time.perf_counter() - wall_start_s)
         return result

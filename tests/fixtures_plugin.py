@@ -9,7 +9,7 @@ import numpy as np
 from py_trees.common import Status
 from vistac import hookimpl
 from vistac.component import Component, ComponentConfig
-from vistac.errors import DataError
+from vistac.errors import ConfigError, DataError
 from vistac.protocols import Episode, Scene, StepObservation
 from vistac.tree import SkillBehaviour
 from vistac.types import ArmState, GaussianBelief, Push, TactileReading
@@ -86,6 +86,8 @@ class Boom(SkillBehaviour):
             raise KeyboardInterrupt
         if self.config.error == "data":
             raise DataError("boom: synthetic sensor failure")
+        if self.config.error == "config":
+            raise ConfigError("boom: synthetic invalid input")
         raise RuntimeError("boom: synthetic bug")
 
 

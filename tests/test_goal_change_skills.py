@@ -73,7 +73,7 @@ def test_a_missing_prior_fails_before_anything_moves(tmp_path: Path) -> None:
     out = tmp_path / "change"
     args = ["-q", "run", str(SKILLS / "detect_change.yaml"), "--out", str(out),
             "--set", f"components.filter.with.prior_from={tmp_path / 'missing.json'}"]
-    assert main(args) != 0
+    assert main(args) == 2  # invalid input
     summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
     assert "prior_from: cannot read" in summary["error"] and "measured values" in summary["error"]
     assert not (out / "episodes").exists() or not any((out / "episodes").iterdir())

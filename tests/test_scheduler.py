@@ -58,6 +58,7 @@ def test_failing_body_fails_the_repeat(tmp_path: Path, plugins: Plugins) -> None
     ("error", "status", "code", "message"),
     [
         ("data", "error", 1, "boom: synthetic sensor failure"),
+        ("config", "error", 2, "boom: synthetic invalid input"),
         ("bug", "error", 1, "RuntimeError: boom: synthetic bug"),
         ("interrupt", "interrupted", 130, "interrupted by Ctrl-C"),
     ],
