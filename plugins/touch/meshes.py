@@ -192,7 +192,9 @@ class GridSDF:
         return np.ascontiguousarray(clamped.T), outside_m
 
     def _interpolate(self, channel: int, coordinates: FloatArray) -> FloatArray:
-        values = map_coordinates(self._volumes[channel], coordinates, order=1, prefilter=False)
+        values = map_coordinates(
+            self._volumes[channel], coordinates, order=1, mode="nearest", prefilter=False
+        )
         return np.asarray(values, dtype=np.float64)
 
     def distance(self, points: FloatArray) -> FloatArray:
