@@ -17,8 +17,7 @@ from vistac.plugins.actions.change import assess, auroc, window_means
 from vistac.plugins.actions.icem import ICEMController, colored_noise
 from vistac.plugins.filters.component import (
     known_parameters,
-    load_summary_belief,
-    load_summary_correlation,
+    load_prior_from,
 )
 from vistac.plugins.filters.dual import Belief, modality_log_likelihoods
 from vistac.plugins.filters.state import DTYPE, StateLayout
@@ -181,15 +180,14 @@ def test_prior_from_keeps_the_correlation_of_the_earlier_belief(tmp_path: Path) 
     path = tmp_path / "summary.json"
     path.write_text(json.dumps(results), encoding="utf-8")
     start = Belief(torch.zeros(layout.size, dtype=DTYPE), torch.eye(layout.size, dtype=DTYPE))
-    belief = known_parameters(
-        start, layout, load_summary_belief(path), path, load_summary_correlation(path)
-    )
+    known, correlation = load_prior_from(path)
+    belief = known_parameters(start, layout, known, path, correlation)
     params = layout.parameter_slice
     np.testing.assert_allclose(belief.cov[params, params].numpy(), cov[params, params],
                                rtol=0, atol=1e-3 * float(np.abs(cov).max()))  # fmt: skip
     assert float(belief.cov[params, : params.start].abs().max()) == 0.0  # not with the pose
     # Without the correlation (a file of measured values): uncorrelated, the same std.
-    uncorrelated = known_parameters(start, layout, load_summary_belief(path), path)
+    uncorrelated = known_parameters(start, layout, load_prior_from(path)[0], path)
     block = uncorrelated.cov[params, params].numpy()
     np.testing.assert_allclose(block, np.diag(np.diag(cov[params, params])), atol=1e-9)
     # A pair the file leaves out is uncorrelated; rounding that breaks positive
@@ -200,15 +198,18 @@ def test_prior_from_keeps_the_correlation_of_the_earlier_belief(tmp_path: Path) 
         "matrix": [[1.0, 1.0, -1.0], [1.0, 1.0, 1.0], [-1.0, 1.0, 1.0]],
     }
     path.write_text(json.dumps(results), encoding="utf-8")
-    mended = known_parameters(
-        start, layout, load_summary_belief(path), path, load_summary_correlation(path)
-    )
+    known, correlation = load_prior_from(path)
+    mended = known_parameters(start, layout, known, path, correlation)
     assert bool((torch.linalg.eigvalsh(mended.cov) > 0).all())
     assert float(mended.cov[params, params][0, 3]) == 0.0
     results["belief_correlation"] = {"names": [names[0]], "matrix": [[1.0, 0.5]]}
     path.write_text(json.dumps(results), encoding="utf-8")
     with pytest.raises(ConfigError, match="belief_correlation"):
-        load_summary_correlation(path)
+        load_prior_from(path)
+    results["belief_correlation"] = {"matrix": [[1.0]]}  # no names
+    path.write_text(json.dumps(results), encoding="utf-8")
+    with pytest.raises(ConfigError, match="belief_correlation"):
+        load_prior_from(path)
 
 
 def test_prior_from_an_earlier_summary(tmp_path: Path) -> None:
@@ -218,7 +219,7 @@ def test_prior_from_an_earlier_summary(tmp_path: Path) -> None:
     path = tmp_path / "summary.json"
     path.write_text(json.dumps({"belief": known}), encoding="utf-8")
     start = Belief(torch.zeros(layout.size, dtype=DTYPE), torch.eye(layout.size, dtype=DTYPE))
-    belief = known_parameters(start, layout, load_summary_belief(path), path)
+    belief = known_parameters(start, layout, load_prior_from(path)[0], path)
     for name in names:
         index = layout.index(name)
         assert float(belief.mean[index]) == pytest.approx(known[name]["mean"])
@@ -226,9 +227,9 @@ def test_prior_from_an_earlier_summary(tmp_path: Path) -> None:
     assert float(belief.cov[0, 0]) == 1.0
     path.write_text(json.dumps({"status": "error"}), encoding="utf-8")
     with pytest.raises(ConfigError, match="has no belief"):
-        load_summary_belief(path)
+        load_prior_from(path)
     with pytest.raises(ConfigError, match="cannot read"):
-        load_summary_belief(tmp_path / "missing.json")
+        load_prior_from(tmp_path / "missing.json")
     two_links = {name: {"mean": 1.0, "std": 0.1} for name in StateLayout(1).names}
     with pytest.raises(ConfigError, match="another number of links"):
         known_parameters(

@@ -81,21 +81,29 @@ def prior_belief(pose_twist: FloatArray, prior: Prior, layout: StateLayout) -> B
     return Belief(torch.as_tensor(mean, dtype=DTYPE), torch.diag(torch.as_tensor(std**2)))
 
 
-def _read_summary(path: Path) -> Any:
+Correlation = tuple[list[str], FloatArray]
+"""Entry names [n] and their correlation matrix [n, n] (``GaussianBelief.correlation_dict``)."""
+
+
+def load_prior_from(path: Path) -> tuple[dict[str, dict[str, float]], Correlation | None]:
+    """The parameters a ``prior_from`` file knows: its ``belief`` (name -> {"mean", "std"})
+    and its ``belief_correlation``, None when the file has none (a file of measured values
+    may leave it out)."""
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        summary = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError) as error:
         raise ConfigError(
             f"prior_from: cannot read {path}: {error}; give the summary.json of an earlier "
             "run on this object, e.g. `vistac run skills/explore_push.yaml --out DIR`, or a "
             'file of measured values: {"belief": {"m_0": {"mean": 0.8, "std": 0.02}, ...}}'
         ) from None
+    if not isinstance(summary, dict):
+        summary = {}
+    return _summary_belief(summary, path), _summary_correlation(summary, path)
 
 
-def load_summary_belief(path: Path) -> dict[str, dict[str, float]]:
-    """The ``belief`` entry of a run's summary.json: name -> {"mean", "std"}."""
-    summary = _read_summary(path)
-    belief = summary.get("belief") if isinstance(summary, dict) else None
+def _summary_belief(summary: dict[str, Any], path: Path) -> dict[str, dict[str, float]]:
+    belief = summary.get("belief")
     if not isinstance(belief, dict) or not belief:
         raise ConfigError(
             f"prior_from: {path} has no belief; use the summary.json of a run that "
@@ -104,23 +112,20 @@ def load_summary_belief(path: Path) -> dict[str, dict[str, float]]:
     return belief
 
 
-def load_summary_correlation(path: Path) -> tuple[list[str], FloatArray] | None:
-    """The ``belief_correlation`` of a run's summary.json (``GaussianBelief.correlation_dict``):
-    entry names [n] and the correlation matrix [n, n]; None when the file has none (a file of
-    measured values may leave it out)."""
-    summary = _read_summary(path)
-    entry = summary.get("belief_correlation") if isinstance(summary, dict) else None
+def _summary_correlation(summary: dict[str, Any], path: Path) -> Correlation | None:
+    entry = summary.get("belief_correlation")
     if entry is None:
         return None
     try:
         names = [str(name) for name in entry["names"]]
         matrix = np.asarray(entry["matrix"], dtype=np.float64)
     except (KeyError, TypeError, ValueError):
-        matrix = np.empty(0)
+        names, matrix = [], np.empty(0)
     if (
         matrix.shape != (len(names), len(names))
+        or len(names) == 0
         or not np.isfinite(matrix).all()
-        or np.abs(matrix).max(initial=0.0) > 1.0
+        or np.abs(matrix).max() > 1.0
     ):
         raise ConfigError(
             f"prior_from: {path} has a belief_correlation that is not "
@@ -135,10 +140,10 @@ def known_parameters(
     layout: StateLayout,
     known: dict[str, dict[str, float]],
     source: Path,
-    correlation: tuple[list[str], FloatArray] | None = None,
+    correlation: Correlation | None = None,
 ) -> Belief:
     """``belief`` with every parameter's mean and std taken from ``known``, correlated as
-    ``correlation`` says (``load_summary_correlation``; the m and f of a pushed object are
+    ``correlation`` says (``load_prior_from``; the m and f of a pushed object are
     known mostly through their product, which only their correlation keeps) and else
     uncorrelated, and uncorrelated with the pose."""
     names = layout.names[layout.parameter_slice]
@@ -158,9 +163,7 @@ def known_parameters(
     return Belief(mean, cov)
 
 
-def _parameter_correlation(
-    names: Sequence[str], correlation: tuple[list[str], FloatArray] | None
-) -> torch.Tensor:
+def _parameter_correlation(names: Sequence[str], correlation: Correlation | None) -> torch.Tensor:
     """The correlation [p, p] of the parameters ``names`` (0 for a pair the file does not
     give), made positive definite (rounding in the file can break that)."""
     result = np.eye(len(names))
@@ -303,11 +306,11 @@ class DualFilterComponent(Component):
         if config.noise_checkpoint is not None:
             load_checkpoint(self.noise_net, config.noise_checkpoint, "filters.dual", {})
         self.noise_net.to(DTYPE)
-        self.known = None if config.prior_from is None else load_summary_belief(config.prior_from)
-        """The ``prior_from`` belief, read before anything moves."""
-        self.known_correlation = (
-            None if config.prior_from is None else load_summary_correlation(config.prior_from)
-        )
+        known: tuple[dict[str, dict[str, float]] | None, Correlation | None] = (None, None)
+        if config.prior_from is not None:  # read before anything moves
+            known = load_prior_from(config.prior_from)
+        self.known, self.known_correlation = known
+        """The ``prior_from`` belief and its correlation."""
         self.generator = torch.Generator().manual_seed(int(ctx.rng("filter").integers(2**31)))
         self.layout: StateLayout | None = None
         self.belief: Belief | None = None
