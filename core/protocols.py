@@ -19,6 +19,7 @@ from vistac.types import (
     FloatArray,
     GaussianBelief,
     GripperState,
+    PixelWindow,
     PointCloud,
     ShapeEstimate,
     TactileReading,
@@ -114,8 +115,11 @@ class Camera(Protocol):
 
     def move_to(self, view: Viewpoint) -> None: ...
 
-    def capture(self, width: int | None = None, height: int | None = None) -> RGBD:
-        """One frame, optionally resampled to ``width x height``."""
+    def capture(
+        self, width: int | None = None, height: int | None = None, window: PixelWindow | None = None
+    ) -> RGBD:
+        """One frame, optionally cropped to ``window`` (a region of interest of the full
+        image, its intrinsics shifted to match), then resampled to ``width x height``."""
         ...
 
 

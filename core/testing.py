@@ -31,6 +31,7 @@ from vistac.types import (
     RGBD,
     ArmState,
     GripperState,
+    PixelWindow,
     PointCloud,
     Pull,
     Push,
@@ -146,6 +147,11 @@ def _check_camera(camera: Any, advance: Advance) -> None:
     assert isinstance(frame, RGBD), "capture() returns an RGBD"
     small = camera.capture(32, 24)
     assert small.depth_m.shape == (24, 32), "capture(width, height) resamples"
+    window = PixelWindow(2, 1, 8, 6)
+    crop = camera.capture(window=window)
+    assert crop.depth_m.shape == (6, 8), "capture(window=...) crops"
+    assert crop.intrinsics == frame.intrinsics.cropped(window), "the crop's intrinsics match"
+    assert camera.capture(16, 12, window).depth_m.shape == (12, 16), "crop, then resample"
     if camera.movable:
         camera.move_to(Viewpoint(np.array([0.3, 0.2, 0.5]), np.array([0.0, 0.45, 0.0])))
         moved = camera.capture()

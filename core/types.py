@@ -34,6 +34,29 @@ def _require_finite(name: str, array: FloatArray) -> None:
 
 
 @dataclass(frozen=True)
+class PixelWindow:
+    """A rectangle of an image: columns ``u0 .. u0 + width - 1``, rows ``v0 .. v0 + height - 1``
+    (pixels)."""
+
+    u0: int
+    v0: int
+    width: int
+    height: int
+
+    def check(self, image_width: int, image_height: int) -> tuple[int, int, int, int]:
+        """(u0, v0, width, height), or DataError unless the window lies inside the image."""
+        if (
+            self.width <= 0 or self.height <= 0 or self.u0 < 0 or self.v0 < 0
+            or self.u0 + self.width > image_width or self.v0 + self.height > image_height
+        ):  # fmt: skip
+            raise DataError(
+                f"pixel window {self.width}x{self.height} at ({self.u0}, {self.v0}) is not "
+                f"inside the {image_width}x{image_height} image"
+            )
+        return self.u0, self.v0, self.width, self.height
+
+
+@dataclass(frozen=True)
 class CameraIntrinsics:
     """Pinhole intrinsics of a depth camera (pixels)."""
 
@@ -67,6 +90,34 @@ class CameraIntrinsics:
             (self.cx + 0.5) * sx - 0.5,
             (self.cy + 0.5) * sy - 0.5,
         )
+
+    def cropped(self, window: PixelWindow) -> CameraIntrinsics:
+        """The camera seen through ``window`` (a region of interest of this image)."""
+        u0, v0, width, height = window.check(self.width, self.height)
+        return CameraIntrinsics(width, height, self.fx, self.fy, self.cx - u0, self.cy - v0)
+
+    def project(self, world_from_camera: FloatArray, points_m: FloatArray) -> FloatArray:
+        """Pixel coordinates (u, v) [N, 2] of world points [N, 3]; NaN behind the camera."""
+        rotation, translation = world_from_camera[:3, :3], world_from_camera[:3, 3]
+        camera = (np.asarray(points_m, dtype=np.float64) - translation) @ rotation
+        z = np.where(camera[:, 2] > 1e-6, camera[:, 2], np.nan)
+        return np.column_stack(
+            [self.fx * camera[:, 0] / z + self.cx, self.fy * camera[:, 1] / z + self.cy]
+        )
+
+    def window_of(self, world_from_camera: FloatArray, points_m: FloatArray) -> PixelWindow | None:
+        """The smallest pixel window that holds the projections of ``points_m`` [N, 3] (world),
+        clipped to the image; None when none of them is in view."""
+        uv = self.project(world_from_camera, points_m)
+        uv = uv[np.isfinite(uv).all(axis=1)]
+        if len(uv) == 0:
+            return None
+        lo = np.clip(np.floor(uv.min(axis=0) + 0.5), 0, [self.width - 1, self.height - 1])
+        hi = np.clip(np.floor(uv.max(axis=0) + 0.5), 0, [self.width - 1, self.height - 1])
+        if np.any(uv.max(axis=0) < -0.5) or np.any(uv.min(axis=0) > [self.width, self.height]):
+            return None
+        u0, v0 = int(lo[0]), int(lo[1])
+        return PixelWindow(u0, v0, int(hi[0]) - u0 + 1, int(hi[1]) - v0 + 1)
 
     def pixel_rays(self) -> FloatArray:
         """Unit-depth ray per pixel in the camera frame (x right, y down, z forward).

@@ -15,7 +15,7 @@ from vistac.errors import DataError, HardwareError
 from vistac.pluginmanager import Plugins
 from vistac.plugins.hardware.camera.recorded import record_frames
 from vistac.testing import build_components, check_component
-from vistac.types import Viewpoint
+from vistac.types import PixelWindow, Viewpoint
 
 SIM = {
     "world": {"plugin": "sim.mujoco", "with": {"object": str(SKILLS / "objects/rect1.yaml")}},
@@ -92,7 +92,7 @@ def write_depth_images(folder: Path, count: int) -> str:
 
 
 def test_rgbd_camera_on_an_image_sequence(plugins: Plugins, tmp_path: Path) -> None:
-    pattern = write_depth_images(tmp_path / "seq", 3)
+    pattern = write_depth_images(tmp_path / "seq", 4)
     options = {
         "backend": "images",
         "device": pattern,
@@ -113,6 +113,8 @@ def test_rgbd_camera_on_an_image_sequence(plugins: Plugins, tmp_path: Path) -> N
     assert np.allclose(frame.depth_m[5:], 0.5)
     assert np.allclose(camera.capture().depth_m[5:], 0.51)
     assert camera.capture(20, 15).depth_m.shape == (15, 20)
+    crop = camera.capture(window=PixelWindow(10, 0, 20, 10))  # the 4th frame, rows 0-4 dropped
+    assert crop.intrinsics.cx == pytest.approx(9.5) and np.isnan(crop.depth_m[:5]).all()
     with pytest.raises(HardwareError, match="no more frames"):
         camera.capture()
     camera.close()
@@ -128,7 +130,7 @@ def test_rgbd_camera_missing_device_is_a_clear_error(plugins: Plugins, tmp_path:
 
 def test_rgbd_camera_conforms(plugins: Plugins, tmp_path: Path) -> None:
     options: dict[str, Any] = {"backend": "images", "width": 40, "height": 30, "cx": 19.5}
-    options |= {"device": write_depth_images(tmp_path / "seq", 2), "cy": 14.5}
+    options |= {"device": write_depth_images(tmp_path / "seq", 5), "cy": 14.5}
     components = {"camera": {"plugin": "camera.rgbd", "with": options}}
     camera = build_components(components, tmp_path, plugins=plugins).component("camera")
     check_component(camera, advance=time.sleep)

@@ -23,7 +23,7 @@ from pydantic import Field
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
 from vistac.errors import DataError, HardwareError
 from vistac.plugins.hardware.camera.image import resample
-from vistac.types import RGBD, CameraIntrinsics, Viewpoint
+from vistac.types import RGBD, CameraIntrinsics, PixelWindow, Viewpoint
 
 
 def write_frame(directory: Path, index: int, frame: RGBD) -> Path:
@@ -104,7 +104,9 @@ class RecordedCamera(Component):
             "camera.recorded is a fixed camera and cannot move; use one view (max_views: 1)"
         )
 
-    def capture(self, width: int | None = None, height: int | None = None) -> RGBD:
+    def capture(
+        self, width: int | None = None, height: int | None = None, window: PixelWindow | None = None
+    ) -> RGBD:
         """The next recorded frame, stamped now, optionally resampled."""
         frame = self.frames[self.index]
         if self.index + 1 < len(self.frames):
@@ -114,4 +116,4 @@ class RecordedCamera(Component):
         stamped = RGBD(
             frame.depth_m, frame.intrinsics, frame.world_from_camera, time.monotonic(), frame.rgb
         )
-        return resample(stamped, width, height)
+        return resample(stamped, width, height, window)

@@ -20,7 +20,7 @@ from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import HardwareError
 from vistac.plugins.hardware.camera.image import resample
 from vistac.plugins.hardware.deadline import call_with_deadline
-from vistac.types import RGBD, CameraIntrinsics, FloatArray, Viewpoint
+from vistac.types import RGBD, CameraIntrinsics, FloatArray, PixelWindow, Viewpoint
 
 log = logging.getLogger(__name__)
 
@@ -117,7 +117,9 @@ class RGBDCamera(Component):
             raise HardwareError("camera.rgbd: no depth map in the grabbed frame")
         return np.asarray(depth, np.float64), colour if colour_ok else None
 
-    def capture(self, width: int | None = None, height: int | None = None) -> RGBD:
+    def capture(
+        self, width: int | None = None, height: int | None = None, window: PixelWindow | None = None
+    ) -> RGBD:
         raw, colour = call_with_deadline(self._grab, self.config.grab_timeout_s, "camera grab")
         if raw.shape != (self.config.height, self.config.width):
             raise HardwareError(
@@ -130,7 +132,7 @@ class RGBDCamera(Component):
         if colour is not None and colour.shape[:2] == raw.shape:
             rgb = np.ascontiguousarray(colour[..., ::-1], dtype=np.uint8)
         frame = RGBD(depth_m, self.intrinsics, self.world_from_camera, time.monotonic(), rgb)
-        return resample(frame, width, height)
+        return resample(frame, width, height, window)
 
     def close(self) -> None:
         self.capture_device.release()

@@ -18,10 +18,11 @@ from pydantic import Field
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
 from vistac.plugins.hardware.sim.arm import find_world
-from vistac.types import RGBD, CameraIntrinsics, FloatArray, Viewpoint
+from vistac.types import RGBD, CameraIntrinsics, FloatArray, PixelWindow, Viewpoint
 
 _WORLD_UP = np.array([0.0, 0.0, 1.0])
 _MIN_RAYS_PER_THREAD = 8192
+_CACHED_GEOMETRIES = 8
 
 
 def look_at(view: Viewpoint) -> FloatArray:
@@ -73,7 +74,7 @@ class SimDepthCamera(Component):
             config.width, config.height, math.radians(config.vertical_fov_deg)
         )
         self._rng = ctx.rng("camera")
-        self._rays: dict[tuple[int, int], FloatArray] = {}
+        self._rays: dict[CameraIntrinsics, FloatArray] = {}
         self._pool = ThreadPoolExecutor(config.ray_threads, thread_name_prefix="raycast")
         self.move_to(
             Viewpoint.on_hemisphere(
@@ -91,14 +92,20 @@ class SimDepthCamera(Component):
         self.world_from_camera = look_at(view)
 
     def _pixel_rays(self, intrinsics: CameraIntrinsics) -> FloatArray:
-        """Unit-depth rays [H*W, 3] in the camera frame, cached per resolution."""
-        key = (intrinsics.width, intrinsics.height)
-        if key not in self._rays:
-            self._rays[key] = np.ascontiguousarray(intrinsics.pixel_rays().reshape(-1, 3))
-        return self._rays[key]
+        """Unit-depth rays [H*W, 3] in the camera frame, cached per image geometry."""
+        if intrinsics not in self._rays:
+            if len(self._rays) >= _CACHED_GEOMETRIES:
+                self._rays.clear()
+            self._rays[intrinsics] = np.ascontiguousarray(intrinsics.pixel_rays().reshape(-1, 3))
+        return self._rays[intrinsics]
 
-    def capture(self, width: int | None = None, height: int | None = None) -> RGBD:
-        intrinsics = self.intrinsics
+    def capture(
+        self, width: int | None = None, height: int | None = None, window: PixelWindow | None = None
+    ) -> RGBD:
+        """One frame; ``window`` crops the full image before the resampling to
+        ``width x height``. Only the returned pixels are ray cast, so a small window resampled
+        to more pixels than it has is sharper than the full image, not interpolated."""
+        intrinsics = self.intrinsics if window is None else self.intrinsics.cropped(window)
         if width is not None or height is not None:
             intrinsics = intrinsics.scaled(width or intrinsics.width, height or intrinsics.height)
         depth_m = self._ray_depth(intrinsics).reshape(intrinsics.height, intrinsics.width)

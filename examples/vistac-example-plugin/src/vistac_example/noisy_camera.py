@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 from vistac.component import Component, ComponentConfig, ComponentContext
-from vistac.types import RGBD, Viewpoint
+from vistac.types import RGBD, PixelWindow, Viewpoint
 
 
 class NoisyCamera(Component):
@@ -27,8 +27,10 @@ class NoisyCamera(Component):
     def move_to(self, view: Viewpoint) -> None:
         self.source.move_to(view)
 
-    def capture(self, width: int | None = None, height: int | None = None) -> RGBD:
-        frame = self.source.capture(width, height)
+    def capture(
+        self, width: int | None = None, height: int | None = None, window: PixelWindow | None = None
+    ) -> RGBD:
+        frame = self.source.capture(width, height, window)
         depth = frame.depth_m + self.rng.normal(0.0, self.config.extra_noise_m, frame.depth_m.shape)
         depth[self.rng.random(depth.shape) < self.config.dropout_prob] = np.nan
         return RGBD(depth, frame.intrinsics, frame.world_from_camera, frame.timestamp_s, frame.rgb)
