@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import SKILLS, run_vistac
+from vistac.types import CameraIntrinsics
 
 
 @pytest.fixture(scope="module")
@@ -68,3 +69,18 @@ def test_views_are_recorded(run_dir: Path) -> None:
     assert view["depth_m"].shape == (240, 320)
     assert view["world_from_camera"].shape == (4, 4)
     assert np.load(run_dir / "views/cloud.npz", allow_pickle=False)["points_m"].shape[1] == 3
+
+
+def test_depth_images_are_cropped_to_the_object(run_dir: Path) -> None:
+    """The per-step depth image covers the object and where the action moves it, at more
+    pixels per metre than the whole 320x240 frame resampled to 64x64 would give."""
+    whole = CameraIntrinsics.from_fov(320, 240, np.radians(58.0)).scaled(64, 64)
+    for folder in sorted((run_dir / "episodes").iterdir()):
+        data = np.load(folder / "data.npz", allow_pickle=False)
+        fx, fy, cx, cy = data["depth_intrinsics"][0]
+        assert fx > 1.5 * whole.fx and fy > whole.fy
+        k = CameraIntrinsics(64, 64, fx, fy, cx, cy)
+        for pose, camera in zip(data["object_pose"], data["camera_pose"], strict=True):
+            centre = np.array([[pose[0, 0], pose[0, 1], 0.02]])
+            u, v = k.project(camera, centre)[0]
+            assert 0 <= u < 64 and 0 <= v < 64, "the object stays in the image"

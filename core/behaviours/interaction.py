@@ -13,9 +13,49 @@ from vistac.component import ComponentConfig
 from vistac.errors import DataError
 from vistac.protocols import Episode, Scene, StepObservation
 from vistac.tree import SkillBehaviour
-from vistac.types import Action, action_point
+from vistac.types import (
+    Action,
+    FloatArray,
+    GaussianBelief,
+    PixelWindow,
+    ShapeEstimate,
+    action_point,
+)
 
 log = logging.getLogger(__name__)
+
+
+def object_region(
+    points_m: FloatArray, fitted: ShapeEstimate | None, belief: GaussianBelief | None,
+    margin_m: float,
+) -> FloatArray:
+    """Table region [2, 2] = (min, max) of (x, y) in m that holds the object now, widened by
+    ``margin_m``. From the object's points [N, 3] alone: their extent (the object has not
+    moved since they were seen). With the shape fitted to them and a belief: a square of the
+    largest link radius around each link's believed position (the object may have moved)."""
+    xy = points_m[:, :2]
+    if fitted is None or belief is None:
+        return np.stack([xy.min(axis=0) - margin_m, xy.max(axis=0) + margin_m])
+    names, links = list(belief.names), range(len(fitted.links))
+    if not all(f"x_{link}" in names and f"y_{link}" in names for link in links):
+        return np.stack([xy.min(axis=0) - margin_m, xy.max(axis=0) + margin_m])
+    origins = np.asarray(fitted.initial_poses)[:, :2]  # [L, 2] where the shape was fitted
+    radius_m = float(np.min(np.linalg.norm(xy[:, None] - origins[None], axis=-1), axis=1).max())
+    centres = np.array([[belief.mean[names.index(f"{a}_{link}")] for a in "xy"] for link in links])
+    pad_m = radius_m + margin_m
+    return np.stack([centres.min(axis=0) - pad_m, centres.max(axis=0) + pad_m])
+
+
+def action_region(action: Action, region_xy_m: FloatArray, top_m: float) -> FloatArray:
+    """Corners [8, 3] (world, m) of the box over the table region [2, 2] = (min, max) of
+    (x, y) swept by ``action``'s full travel along its direction, up to ``top_m``."""
+    travel_m = action.speed_mps * action.duration_s
+    shift = travel_m * np.array([np.cos(action.pd_rad), np.sin(action.pd_rad)])
+    lo = np.minimum(region_xy_m[0], region_xy_m[0] + shift)
+    hi = np.maximum(region_xy_m[1], region_xy_m[1] + shift)
+    return np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (0.0, top_m)]
+    )
 
 
 class ChooseAction(SkillBehaviour):
@@ -63,6 +103,7 @@ class ExecuteAction(SkillBehaviour):
     arm state, a depth image and, in simulation, the true link poses. Writes ``episode``."""
 
     reads = ("action",)
+    optional_reads = ("shape", "object_cloud", "belief")
     writes = ("episode",)
     role_fields = {"executor": "executor", "arm": "arm", "tactile": "tactile", "camera": "camera"}
     optional_roles = ("camera",)
@@ -75,6 +116,11 @@ class ExecuteAction(SkillBehaviour):
         depth_width: int = Field(64, gt=0, description="width of the per-step depth image")
         depth_height: int = Field(64, gt=0)
         record_depth: bool = True
+        depth_margin_m: float | None = Field(
+            0.03, gt=0, description="the per-step depth image shows only the object, where the "
+            "action can move it and this margin around it: a crop of the full frame, so the "
+            "object fills more pixels; None: the whole frame",
+        )
         max_sensor_age_s: float = Field(
             0.2, gt=0, description="older tactile/arm data stops the arm"
         )
@@ -83,6 +129,7 @@ class ExecuteAction(SkillBehaviour):
         self.action: Action = self.read("action")
         self.episode = Episode(self.run.episode_count, self.action)
         self.observing = False
+        self.window = self._depth_window()
         self.component("executor").start(self.action)
         point = action_point(self.action)
         log.info(
@@ -108,6 +155,25 @@ class ExecuteAction(SkillBehaviour):
             self.component("executor").abort()
             self.component("arm").stop()
 
+    def _depth_window(self) -> PixelWindow | None:
+        """The crop of the camera's frame that the per-step depth images cover, or None."""
+        camera, shape = self.component("camera"), self.read("shape")
+        points = shape.cloud.points_m if shape is not None else None
+        if points is None and self.read("object_cloud") is not None:
+            points = self.read("object_cloud").points_m
+        margin_m = self.config.depth_margin_m
+        if camera is None or points is None or margin_m is None or not self.config.record_depth:
+            return None
+        region = object_region(points, shape, self.read("belief"), margin_m)
+        top_m = max(float(points[:, 2].max()), 0.0)
+        frame = camera.capture()
+        window = frame.intrinsics.window_of(
+            frame.world_from_camera, action_region(self.action, region, top_m)
+        )
+        if window is None:
+            log.warning("the object is out of the camera's view: depth images show the frame")
+        return window
+
     def _record_step(self) -> None:
         tactile = self.component("tactile").read()
         arm_state = self.component("arm").state()
@@ -116,7 +182,7 @@ class ExecuteAction(SkillBehaviour):
         camera = self.component("camera")
         depth = None
         if camera is not None and self.config.record_depth:
-            depth = camera.capture(self.config.depth_width, self.config.depth_height)
+            depth = camera.capture(self.config.depth_width, self.config.depth_height, self.window)
         world = self.run.world_if_built()
         poses = world.ground_truth_poses() if world is not None else None
         step = StepObservation(self.run.time_s, tactile, arm_state, depth, poses)

@@ -22,10 +22,11 @@ class Look(SkillBehaviour):
     """One view per tick: ask the planner for a viewpoint, move the camera there, capture,
     register the view onto the previous ones and (with a cloud processor) segment the object;
     with a shape estimator, refit after each view. Writes ``cloud`` (the merged world-frame
-    cloud, table included), ``views`` (count) and ``shape``; the run summary gets ``shape``
+    cloud, table included), ``views`` (count), ``object_cloud`` (the segmented object, with
+    a cloud processor) and ``shape``; the run summary gets ``shape``
     (per link the fitted superquadric and its parameter std, the views and the time spent)."""
 
-    writes = ("cloud", "views", "shape")
+    writes = ("cloud", "views", "object_cloud", "shape")
     role_fields = {
         "camera": "camera",
         "views": "view_planner",
@@ -43,7 +44,7 @@ class Look(SkillBehaviour):
 
     @classmethod
     def blackboard_writes(cls, config: Config, roles: dict[str, str]) -> set[str]:
-        written = {"cloud", "views"}
+        written = {"cloud", "views"} | ({"object_cloud"} if config.processor in roles else set())
         return written | ({"shape"} if config.shape in roles else set())
 
     def initialise(self) -> None:
@@ -93,6 +94,8 @@ class Look(SkillBehaviour):
         self.run.recorder.save_cloud(merged)
         self.write("cloud", merged)
         self.write("views", len(self.clouds))
+        if self.component("processor") is not None:
+            self.write("object_cloud", self.object_cloud)
         self.run.results["views_taken"] = len(self.clouds)
         if self.shape_estimate is not None:
             self.write("shape", self.shape_estimate)
