@@ -160,6 +160,21 @@ def test_pushes_keep_the_object_inside_the_workspace(tmp_path: Path) -> None:
     assert len(near) > 20 and near.min() >= 0.25 - 1e-9
 
 
+def test_pulls_keep_the_object_inside_the_workspace(tmp_path: Path) -> None:
+    """Pulls heading anywhere (spread pi) on an object 10 cm from the near edge: those that
+    would bring its centre within 8 cm of the edge are dropped, so a skill of pulls alone can
+    go on pulling (before, pulls towards the robot walked it out of reach)."""
+    scene = _scene(_link(ELLIPSE, (0.0, 0.30), exponents=1.0))
+    options = {"samples": 200, "interactions": ["pull"], "pull_spread_rad": math.pi}
+    pulls = _sampler(tmp_path, **options).sample(scene, np.random.default_rng(6))
+    after = np.array([0.30 + 0.1 * math.sin(p.pd_rad) for p in pulls])
+    assert len(pulls) > 20 and after.min() >= 0.28 - 1e-9 and after.max() > 0.35
+    free = _sampler(tmp_path, object_margin_m=None, **options).sample(
+        scene, np.random.default_rng(6)
+    )
+    assert min(0.30 + 0.1 * math.sin(p.pd_rad) for p in free) < 0.25
+
+
 def test_pushes_keep_within_the_spread_of_the_chosen_direction(tmp_path: Path) -> None:
     link = _link(ELLIPSE, (0.0, 0.45), exponents=1.0)
     sampler = _sampler(tmp_path, samples=200, interactions=["push", "pull"],

@@ -219,3 +219,15 @@ def test_tiny_training_gives_checkpoints_the_explore_skill_can_use(tmp_path: Pat
         "--set", f"components.filter.with.noise_checkpoint={out / 'obs_noise_push.pt'}",
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
+
+
+def test_explore_pull_pulls_six_times_and_ends_with_a_belief(tmp_path: Path) -> None:
+    """The shipped pull skill runs to its end: its pulls keep the object in reach (they used
+    to walk it towards the robot until no pull was left, and the run failed)."""
+    out = tmp_path / "pull"
+    result = run_vistac("run", str(SKILLS / "explore_pull.yaml"), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "success"
+    assert [e["action"]["kind"] for e in summary["episodes"]] == ["pull"] * 6
+    assert {"m_0", "f_0", "com_x_0"} <= set(summary["belief"])

@@ -64,10 +64,10 @@ class OutlineSampler(Component):
         )
         """((x min, x max), (y min, y max)): the gripper's path must stay inside."""
         object_margin_m: float | None = Field(
-            None, ge=0, description="drop pushes that would leave the object's centre less "
-            "than this inside the workspace, or nearer its edge than it is where it is that "
-            "near already (it moves about as far as the pusher), so that later pushes can "
-            "still reach it; null: no check",
+            None, ge=0, description="drop pushes and pulls that would leave the object's "
+            "centre less than this inside the workspace, or nearer its edge than it is where "
+            "it is that near already (it moves about as far as the gripper), so that later "
+            "interactions can still reach it; null: no check",
         )  # fmt: skip
         pull_towards_rad: float = Field(
             -np.pi / 2, description="mean pull direction (-y: towards the robot)"
@@ -99,9 +99,9 @@ class OutlineSampler(Component):
 
     def _reachable(self, action: Action, object_xy: FloatArray) -> bool:
         """Whether the interaction's start and end points lie in the workspace, a push heads
-        where ``push_towards_rad`` allows and leaves the object's centre ``object_xy`` [2]
-        ``object_margin_m`` inside the workspace (or, where it is nearer the edge already, no
-        nearer than before)."""
+        where ``push_towards_rad`` allows, and the interaction leaves the object's centre
+        ``object_xy`` [2] ``object_margin_m`` inside the workspace (or, where it is nearer the
+        edge already, no nearer than before)."""
         towards = self.config.push_towards_rad
         if isinstance(action, Push) and towards is not None:
             off_rad = np.angle(np.exp(1j * (action.pd_rad - towards)))
@@ -114,7 +114,7 @@ class OutlineSampler(Component):
         if not in_workspace(np.stack([start, start + travel]), self.config.workspace_xy_m):
             return False
         margin = self.config.object_margin_m
-        if not isinstance(action, Push) or margin is None:
+        if margin is None:
             return True
         after = depth_inside(object_xy + travel, self.config.workspace_xy_m)
         return after >= min(margin, depth_inside(object_xy, self.config.workspace_xy_m))
