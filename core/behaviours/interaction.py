@@ -34,11 +34,11 @@ def object_region(
     moved since they were seen). With the shape fitted to them and a belief: a square of the
     largest link radius around each link's believed position (the object may have moved)."""
     xy = points_m[:, :2]
-    if fitted is None or belief is None:
+    names = list(belief.names) if belief is not None else []
+    links = range(len(fitted.links)) if fitted is not None else range(0)
+    if fitted is None or not all(f"x_{k}" in names and f"y_{k}" in names for k in links):
         return np.stack([xy.min(axis=0) - margin_m, xy.max(axis=0) + margin_m])
-    names, links = list(belief.names), range(len(fitted.links))
-    if not all(f"x_{link}" in names and f"y_{link}" in names for link in links):
-        return np.stack([xy.min(axis=0) - margin_m, xy.max(axis=0) + margin_m])
+    assert belief is not None
     origins = np.asarray(fitted.initial_poses)[:, :2]  # [L, 2] where the shape was fitted
     radius_m = float(np.min(np.linalg.norm(xy[:, None] - origins[None], axis=-1), axis=1).max())
     centres = np.array([[belief.mean[names.index(f"{a}_{link}")] for a in "xy"] for link in links])
@@ -182,7 +182,10 @@ class ExecuteAction(SkillBehaviour):
         camera = self.component("camera")
         depth = None
         if camera is not None and self.config.record_depth:
-            depth = camera.capture(self.config.depth_width, self.config.depth_height, self.window)
+            width, height = self.config.depth_width, self.config.depth_height
+            # Without a window, a camera written before windows existed still works.
+            window = {"window": self.window} if self.window is not None else {}
+            depth = camera.capture(width, height, **window)
         world = self.run.world_if_built()
         poses = world.ground_truth_poses() if world is not None else None
         step = StepObservation(self.run.time_s, tactile, arm_state, depth, poses)
