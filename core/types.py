@@ -110,12 +110,11 @@ class CameraIntrinsics:
         clipped to the image; None when none of them is in view."""
         uv = self.project(world_from_camera, points_m)
         uv = uv[np.isfinite(uv).all(axis=1)]
-        if len(uv) == 0:
-            return None
-        lo = np.clip(np.floor(uv.min(axis=0) + 0.5), 0, [self.width - 1, self.height - 1])
-        hi = np.clip(np.floor(uv.max(axis=0) + 0.5), 0, [self.width - 1, self.height - 1])
-        if np.any(uv.max(axis=0) < -0.5) or np.any(uv.min(axis=0) > [self.width, self.height]):
-            return None
+        size = np.array([self.width, self.height])
+        if len(uv) == 0 or np.any(uv.max(axis=0) < -0.5) or np.any(uv.min(axis=0) > size):
+            return None  # nothing in front of the camera, or all beside the image
+        lo = np.clip(np.floor(uv.min(axis=0) + 0.5), 0, size - 1)
+        hi = np.clip(np.floor(uv.max(axis=0) + 0.5), 0, size - 1)
         u0, v0 = int(lo[0]), int(lo[1])
         return PixelWindow(u0, v0, int(hi[0]) - u0 + 1, int(hi[1]) - v0 + 1)
 
