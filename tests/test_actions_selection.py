@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from pydantic import ValidationError
 from simctx import TestContext
 from vistac.errors import ConfigError, DataError
 from vistac.plugins.actions.affordances import (
@@ -126,6 +127,31 @@ def test_pulls_only_where_the_chord_fits_the_gripper(tmp_path: Path) -> None:
     assert all(abs(a.gp_m[1] - 0.45) < 1e-3 for a in actions)  # the chord's midpoint
     narrow = _sampler(tmp_path, samples=64, interactions=["pull"], max_grasp_width_m=0.05)
     assert narrow.sample(_scene(_link(BOX, (0.0, 0.45))), np.random.default_rng(2)) == []
+
+
+def test_open_fingers_never_descend_onto_a_link(tmp_path: Path) -> None:
+    """Two 6 cm round links 3 cm apart along x: a grasp on one closing along x would put
+    the open pads (15 cm apart) on the other, so only grasps closing across y are kept."""
+    links = (_link(np.array([0.03, 0.03, 0.025]), (-0.045, 0.45), exponents=1.0),
+             _link(np.array([0.03, 0.03, 0.025]), (0.045, 0.45), exponents=1.0))  # fmt: skip
+    sampler = _sampler(tmp_path, samples=128, interactions=["pull"])
+    actions = sampler.sample(_scene(*links), np.random.default_rng(4))
+    assert len(actions) > 10
+    for action in actions:
+        axis = np.array([math.cos(action.grasp_axis_rad), math.sin(action.grasp_axis_rad)])
+        for side in (-1.0, 1.0):
+            pad_xy = action.gp_m + side * (0.075 + 0.005) * axis
+            assert not any(inside_link(link, pad_xy[None]).any() for link in links)
+    assert all(_angle_deg(a.grasp_axis_rad % math.pi, math.pi / 2) < 65.0 for a in actions)
+    wide = _sampler(tmp_path, samples=128, interactions=["pull"], gripper_opening_m=0.07,
+                    max_grasp_width_m=0.065)  # fmt: skip
+    assert any(_angle_deg(a.grasp_axis_rad % math.pi, 0.0) < 20.0
+               for a in wide.sample(_scene(*links), np.random.default_rng(4)))  # fmt: skip
+
+
+def test_a_grasp_as_wide_as_the_gripper_opens_is_rejected(tmp_path: Path) -> None:
+    with pytest.raises(ValidationError, match=r"max_grasp_width_m .* gripper_opening_m"):
+        _sampler(tmp_path, interactions=["pull"], gripper_opening_m=0.085)
 
 
 def test_unreachable_candidates_are_dropped(tmp_path: Path) -> None:

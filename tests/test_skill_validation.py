@@ -130,6 +130,8 @@ tree: stop
     assert skill.seed == 7
     with pytest.raises(ConfigError, match=r"components\.arm\.with\.max_speed_mps"):
         load_skill(skill_path, plugins.registry, ["components.arm.with.max_speed_mps=-1"])
+    with pytest.raises(ConfigError, match=r"box2\.yaml: no such file \(a relative path is taken "):
+        load_skill(skill_path, plugins.registry, ["components.world.with.object=objects/box2.yaml"])
 
 
 def test_apply_overrides_reports_bad_keys() -> None:

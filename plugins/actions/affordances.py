@@ -20,7 +20,7 @@ import logging
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, NonNegativeFloat
+from pydantic import Field, NonNegativeFloat, model_validator
 from vistac.component import ComponentContext
 from vistac.errors import DataError
 from vistac.plugins.actions.outline import OutlineSampler, chord, point_on_outline
@@ -107,6 +107,21 @@ class SuperquadricAffordances(OutlineSampler):
             (0.02, 0.024), description="(along, across the push) size of the closed fingers "
             "about the TCP: where they descend must be clear of every link",
         )  # fmt: skip
+        gripper_opening_m: float = Field(
+            0.15, gt=0, description="distance between the pads of the open gripper (sim "
+            "0.15, Robotiq 2F-85 0.085): where the open fingers descend for a grasp, each a "
+            "pad of half the finger footprint, must be clear of every link",
+        )  # fmt: skip
+
+        @model_validator(mode="after")
+        def _grasp_fits_opening(self) -> SuperquadricAffordances.Config:
+            if self.max_grasp_width_m >= self.gripper_opening_m:
+                raise ValueError(
+                    f"max_grasp_width_m ({self.max_grasp_width_m} m) must be less than "
+                    f"gripper_opening_m ({self.gripper_opening_m} m): the open fingers have to "
+                    "pass either side of the object"
+                )
+            return self
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
         super().__init__(config, ctx)
@@ -138,7 +153,7 @@ class SuperquadricAffordances(OutlineSampler):
             action = (
                 self._push(shape, int(index), point, outward, rng)
                 if kind == "push"
-                else self._pull(outline, int(index), point, outward, rng)
+                else self._pull(shape, outline, int(index), point, outward, rng)
             )
             if action is not None and self._reachable(action, object_xy):
                 actions.append(action)
@@ -185,6 +200,7 @@ class SuperquadricAffordances(OutlineSampler):
 
     def _pull(
         self,
+        shape: ShapeEstimate,
         outline: FloatArray,
         index: int,
         point: FloatArray,
@@ -192,16 +208,33 @@ class SuperquadricAffordances(OutlineSampler):
         rng: np.random.Generator,
     ) -> Pull | None:
         """A grasp closing along the outline normal at ``point`` [2], or None when the chord
-        of the link along it is wider than the gripper opens."""
+        of the link along it is wider than ``max_grasp_width_m`` or an open finger would
+        descend onto a link (the neighbouring link of a two-link object, say)."""
         axis_rad = float(np.arctan2(outward[1], outward[0]))
         midpoint, width_m = chord(outline, point, axis_rad)
         if width_m > self.config.max_grasp_width_m:
+            return None
+        if any(inside_link(link, self._open_fingers(midpoint, axis_rad)).any()
+               for link in shape.links):  # fmt: skip
             return None
         pd_rad = self.config.pull_towards_rad + rng.uniform(-1, 1) * self.config.pull_spread_rad
         return Pull(
             midpoint, float(pd_rad), self.config.speed_mps, axis_rad, self.config.duration_s,
             link=index,
         )  # fmt: skip
+
+
+    def _open_fingers(self, midpoint: FloatArray, axis_rad: float) -> FloatArray:
+        """Grid points [2 * 25, 2] over both pads of the open gripper centred at ``midpoint``
+        [2], closing along ``axis_rad``."""
+        along_m, across_m = self.config.finger_footprint_m
+        pad_m = 0.5 * along_m
+        offset_m = 0.5 * (self.config.gripper_opening_m + pad_m)
+        axis = np.array([np.cos(axis_rad), np.sin(axis_rad)])
+        return np.vstack([
+            finger_footprint(midpoint + side * offset_m * axis, axis_rad, (pad_m, across_m))
+            for side in (-1.0, 1.0)
+        ])  # fmt: skip
 
 
 class PushPullRule(SuperquadricAffordances):

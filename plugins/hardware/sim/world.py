@@ -85,6 +85,11 @@ class MujocoWorld(Component):
         @classmethod
         def _object_file_is_valid(cls, path: Path) -> Path:
             """Check the object file before anything is built (errors name the file)."""
+            if not path.exists():
+                raise ValueError(
+                    f"{path}: no such file (a relative path is taken from the skill file's "
+                    "folder; give an absolute path for a file elsewhere)"
+                )
             try:
                 load_object(path)
             except ConfigError as exc:
