@@ -129,7 +129,7 @@ def test_pulls_only_where_the_chord_fits_the_gripper(tmp_path: Path) -> None:
     assert narrow.sample(_scene(_link(BOX, (0.0, 0.45))), np.random.default_rng(2)) == []
 
 
-def test_open_fingers_never_descend_onto_a_link(tmp_path: Path) -> None:
+def test_fingers_never_descend_onto_or_sweep_over_another_link(tmp_path: Path) -> None:
     """Two 6 cm round links 3 cm apart along x: a grasp on one closing along x would put
     the open pads (15 cm apart) on the other, so only grasps closing across y are kept."""
     links = (_link(np.array([0.03, 0.03, 0.025]), (-0.045, 0.45), exponents=1.0),
@@ -147,6 +147,14 @@ def test_open_fingers_never_descend_onto_a_link(tmp_path: Path) -> None:
                     max_grasp_width_m=0.065)  # fmt: skip
     assert any(_angle_deg(a.grasp_axis_rad % math.pi, 0.0) < 20.0
                for a in wide.sample(_scene(*links), np.random.default_rng(4)))  # fmt: skip
+    # A small link 5 mm beside a large one: the open pads land beyond it, but closing along
+    # x on the large link the pad would sweep over the small one and squeeze both.
+    links = (_link(np.array([0.015, 0.015, 0.025]), (-0.02, 0.45), exponents=1.0),
+             _link(np.array([0.03, 0.03, 0.025]), (0.03, 0.45), exponents=1.0))  # fmt: skip
+    actions = sampler.sample(_scene(*links), np.random.default_rng(5))
+    on_large = [a for a in actions if a.link == 1]
+    assert len(on_large) > 5
+    assert all(_angle_deg(a.grasp_axis_rad % math.pi, 0.0) > 30.0 for a in on_large)
 
 
 def test_a_grasp_as_wide_as_the_gripper_opens_is_rejected(tmp_path: Path) -> None:

@@ -208,14 +208,13 @@ class SuperquadricAffordances(OutlineSampler):
         rng: np.random.Generator,
     ) -> Pull | None:
         """A grasp closing along the outline normal at ``point`` [2], or None when the chord
-        of the link along it is wider than ``max_grasp_width_m`` or an open finger would
-        descend onto a link (the neighbouring link of a two-link object, say)."""
+        of the link along it is wider than ``max_grasp_width_m`` or the fingers would meet
+        another link (see :meth:`_grasp_blocked`)."""
         axis_rad = float(np.arctan2(outward[1], outward[0]))
         midpoint, width_m = chord(outline, point, axis_rad)
         if width_m > self.config.max_grasp_width_m:
             return None
-        if any(inside_link(link, self._open_fingers(midpoint, axis_rad)).any()
-               for link in shape.links):  # fmt: skip
+        if self._grasp_blocked(shape, index, midpoint, axis_rad, width_m):
             return None
         pd_rad = self.config.pull_towards_rad + rng.uniform(-1, 1) * self.config.pull_spread_rad
         return Pull(
@@ -224,17 +223,28 @@ class SuperquadricAffordances(OutlineSampler):
         )  # fmt: skip
 
 
-    def _open_fingers(self, midpoint: FloatArray, axis_rad: float) -> FloatArray:
-        """Grid points [2 * 25, 2] over both pads of the open gripper centred at ``midpoint``
-        [2], closing along ``axis_rad``."""
+    def _grasp_blocked(
+        self, shape: ShapeEstimate, index: int, midpoint: FloatArray, axis_rad: float,
+        width_m: float,
+    ) -> bool:
+        """Whether an open finger would descend onto a link, or a closing finger would sweep
+        over a link other than the grasped one ``index`` (and squeeze both): the grasp has
+        its chord of ``width_m`` centred at ``midpoint`` [2] along ``axis_rad``."""
         along_m, across_m = self.config.finger_footprint_m
         pad_m = 0.5 * along_m
-        offset_m = 0.5 * (self.config.gripper_opening_m + pad_m)
+        open_m = 0.5 * (self.config.gripper_opening_m + pad_m)  # pad centre, open
+        contact_m = 0.5 * (width_m + pad_m)  # pad centre, on the link
         axis = np.array([np.cos(axis_rad), np.sin(axis_rad)])
-        return np.vstack([
-            finger_footprint(midpoint + side * offset_m * axis, axis_rad, (pad_m, across_m))
-            for side in (-1.0, 1.0)
-        ])  # fmt: skip
+        for side in (-1.0, 1.0):
+            pad = finger_footprint(midpoint + side * open_m * axis, axis_rad, (pad_m, across_m))
+            sweep = finger_footprint(
+                midpoint + side * 0.5 * (open_m + contact_m) * axis, axis_rad,
+                (open_m - contact_m + pad_m, across_m), per_side=9,
+            )  # fmt: skip
+            for other, link in enumerate(shape.links):
+                if inside_link(link, pad if other == index else sweep).any():
+                    return True
+        return False
 
 
 class PushPullRule(SuperquadricAffordances):
