@@ -23,7 +23,7 @@ system-libs:
 
 $(STAMP): pyproject.toml | system-libs
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install -q --upgrade "pip>=23" "setuptools>=68" wheel
+	$(BIN)/pip install -q --upgrade "pip>=23" "setuptools>=77" wheel
 	# The CPU build of torch, pinned: an unpinned torch pulls gigabytes of CUDA packages.
 	$(BIN)/pip install -q "torch==2.13.0"
 	$(BIN)/pip install -q -e ".[dev]"

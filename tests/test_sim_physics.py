@@ -24,8 +24,9 @@ DT_S = 1.0 / 15.0
 PUSH_UP = Push(cp_m=np.array([0.0, 0.405]), pd_rad=math.pi / 2, speed_mps=0.02)
 
 
-def execute(ctx: TestContext, action: Action) -> np.ndarray:
-    """Run ``action`` to the end; returns the tactile forces [T, 2, 2] of the interaction."""
+def execute(ctx: TestContext, action: Action, tcp_z_m: list[float] | None = None) -> np.ndarray:
+    """Run ``action`` to the end; returns the tactile forces [T, 2, 2] of the interaction
+    (and appends the TCP height of each of its steps to ``tcp_z_m``)."""
     executor: CartesianExecutor = ctx.add(CartesianExecutor)
     world: MujocoWorld = ctx.find("world")
     executor.start(action)
@@ -37,6 +38,8 @@ def execute(ctx: TestContext, action: Action) -> np.ndarray:
         world.step(DT_S)
         if interacting:
             forces.append(ctx.find("tactile").read().force_n)
+            if tcp_z_m is not None:
+                tcp_z_m.append(float(ctx.find("arm").state().pose[2]))
     raise AssertionError("the action did not finish")
 
 
@@ -153,6 +156,24 @@ def test_pull_moves_the_grasped_link_along_pd(tmp_path: Path) -> None:
     last = forces[-10:].mean(axis=0)
     assert last[0, 0] * last[1, 0] < 0 and min(abs(last[:, 0])) > 5.0
     assert last[:, 1].sum() == pytest.approx(0.3 * 0.5 * 9.81, rel=0.15)
+
+
+@pytest.mark.parametrize("footprint", ["hexagon", "ellip1"])
+def test_a_grasp_across_slanted_or_round_sides_holds_at_finger_height(
+    tmp_path: Path, footprint: str
+) -> None:
+    """The fingers close at a gripper's speed: they stop on the sides instead of tunnelling
+    into the object and being lifted onto its top (which read 10-16 times the friction)."""
+    link = {"footprint": footprint, "height_m": 0.043, "mass_kg": 1.14, "friction": 0.23}
+    ctx = sim_setup(tmp_path, box_object(link=link, pose=[0.0, 0.45, 0.047]))
+    pull = Pull(gp_m=np.array([0.0, 0.45]), pd_rad=-1.41, speed_mps=0.02, grasp_axis_rad=0.5857)
+    tcp_z_m: list[float] = []
+    forces = execute(ctx, pull, tcp_z_m)
+    assert max(tcp_z_m) < 0.025  # finger height 0.02 m; the box is 0.05 m tall
+    moved_m = np.linalg.norm(ctx.find("world").link_poses()[0][:2] - [0.0, 0.45])
+    assert moved_m == pytest.approx(0.1, abs=0.01)
+    pulled_n = np.linalg.norm(forces[-30:].sum(axis=1), axis=1).mean()
+    assert pulled_n == pytest.approx(0.23 * 1.14 * 9.81, rel=0.25)
 
 
 def test_gripper_detects_object_only_when_stalled_on_it(tmp_path: Path) -> None:

@@ -267,7 +267,13 @@ class CartesianExecutor(Component):
     def _gripper_phase(
         self, name: str, command: Callable[[], None], check_grasp: bool = False
     ) -> _Phase:
-        """Send ``command`` once, hold the arm, wait until the fingers stop."""
+        """Stop the arm and send ``command`` once, then hold the arm where it stopped (zero
+        velocity: stopping it again every period would re-anchor it wherever the fingers'
+        contact forces had nudged it) until the fingers stop."""
+
+        def enter() -> None:
+            self.arm.stop()
+            command()
 
         def finished(elapsed_s: float) -> bool:
             state = self.gripper.state()
@@ -277,7 +283,10 @@ class CartesianExecutor(Component):
                 log.warning("grasp: the fingers closed on nothing (width %.4f m)", state.width_m)
             return True
 
-        return _Phase(name, command, finished, self.arm.stop, self.config.gripper_timeout_s)
+        def hold() -> None:
+            self.arm.command_velocity(np.zeros(4))
+
+        return _Phase(name, enter, finished, hold, self.config.gripper_timeout_s)
 
     def _interact_phase(
         self, name: str, direction: FloatArray, speed_mps: float, duration_s: float

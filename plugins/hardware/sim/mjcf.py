@@ -44,6 +44,11 @@ _ARM_KP = 2.0e4
 _YAW_KP = 50.0
 _FINGER_KP = 1000.0
 _FINGER_FORCE_N = 15.0
+_FINGER_SPEED_MPS = 0.1
+"""Closing (and opening) speed of each finger: its slide's damping is the force limit over
+this. A real parallel gripper closes at 0.02-0.15 m/s; undamped, the force-limited fingers
+hit the object at metres per second, tunnel into it within a physics step, and the contact
+resolves the overlap by lifting the pads onto the object's top."""
 
 
 @dataclass(frozen=True)
@@ -112,7 +117,8 @@ def _finger(index: int, sign: float) -> str:
     hx, hy, hz = PAD_HALF_SIZE_M
     return (
         f'<body name="finger{index}" gravcomp="1">'
-        f'<joint name="finger{index}" type="slide" axis="{sign:g} 0 0" damping="2"/>'
+        f'<joint name="finger{index}" type="slide" axis="{sign:g} 0 0" '
+        f'damping="{_FINGER_FORCE_N / _FINGER_SPEED_MPS:g}"/>'
         f'<inertial pos="{sign * hx:g} 0 {PAD_CENTRE_Z_M:g}" mass="{_FINGER_MASS_KG:g}" '
         f'diaginertia="1e-5 1e-5 1e-5"/>'
         f'<geom name="pad{index}" type="box" size="{hx:g} {hy:g} {hz:g}" '
