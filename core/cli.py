@@ -392,7 +392,11 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--out", type=Path, required=True, help="checkpoint folder")
     train.add_argument("--preset", default="tiny", help="tiny, ship, paper or a preset YAML file")
     train.add_argument(
-        "--data", type=Path, action="append", help="train on these recorded run folders instead"
+        "--data",
+        type=Path,
+        action="append",
+        help="train on recorded data instead of collecting: run folders, or the data/ folder "
+        "of an earlier training (its train/val split kept)",
     )
     train.add_argument(
         "--selection", choices=("info_gain", "uniform", "random"),

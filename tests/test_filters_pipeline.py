@@ -15,7 +15,13 @@ from vistac.objects import load_object
 from vistac.plugins.filters.component import DualFilterComponent, nearest_link, relative_poses
 from vistac.plugins.filters.data import link_geometry, unwrapped_twist
 from vistac.plugins.filters.state import StateLayout
-from vistac.plugins.filters.train import TrainConfig, correlation_steps, fit, object_files
+from vistac.plugins.filters.train import (
+    TrainConfig,
+    correlation_steps,
+    fit,
+    object_files,
+    recorded_data,
+)
 from vistac.protocols import Filter, Scene
 from vistac.testing import build_components, check_component_class
 from vistac.types import PointCloud, ShapeEstimate, Superquadric
@@ -209,6 +215,12 @@ def test_tiny_training_gives_checkpoints_the_explore_skill_can_use(tmp_path: Pat
     history = report["push"]["gnn"]["history"]
     assert history[-1]["val"] < history[0]["val"], "training did not reduce the validation loss"
     assert report["push"]["windows"]["missed"] > 0  # missed-push copies were trained on
+    # `--data` on this training's data/ folder keeps its train/val split.
+    recorded = recorded_data([out / "data"])
+    for split in ("train", "val"):
+        assert len(recorded[split]) == report["data"][split]["trajectories"] > 0
+    with pytest.raises(ConfigError, match="not both"):
+        recorded_data([out / "data", next((out / "data" / "val").iterdir())])
     for name in ("gnn_push.pt", "ff_push.pt", "obs_noise_push.pt"):
         assert (out / name).stat().st_size < 2_000_000
         assert isinstance(torch.load(out / name, weights_only=True), dict)

@@ -595,6 +595,31 @@ def _save_noise(noise_net: ObsNoiseNet, path: Path) -> None:
     sidecar_path(path).write_text(json.dumps(sidecar, indent=2), encoding="utf-8")
 
 
+def recorded_data(data_dirs: list[Path]) -> dict[str, list[Trajectory]]:
+    """Train and validation trajectories from ``--data``: the ``data`` folders of earlier
+    trainings (their ``train/`` and ``val/`` run folders, the split kept), or run folders
+    (the first eighth of their trajectories validates)."""
+    collections = [folder for folder in data_dirs if (folder / "train").is_dir()]
+    if collections and len(collections) < len(data_dirs):
+        raise ConfigError(
+            "--data: give either the data/ folders of earlier trainings (with train/ and val/) "
+            "or recorded run folders, not both"
+        )
+    if collections:
+        missing = [str(folder / "val") for folder in collections if not (folder / "val").is_dir()]
+        if missing:
+            raise ConfigError(f"--data: no validation runs in {', '.join(missing)}")
+        runs = {
+            split: sorted(run for folder in collections for run in (folder / split).iterdir())
+            for split in ("train", "val")
+        }
+        return {split: load_trajectories([r for r in found if r.is_dir()])
+                for split, found in runs.items()}  # fmt: skip
+    trajectories = load_trajectories(data_dirs)
+    cut = max(1, len(trajectories) // 8)
+    return {"train": trajectories[cut:], "val": trajectories[:cut]}
+
+
 def train(
     skill: Path, out_dir: Path, config: TrainConfig, data_dirs: list[Path] | None = None
 ) -> dict[str, Any]:
@@ -603,9 +628,7 @@ def train(
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
     if data_dirs:
-        data = {"train": load_trajectories(data_dirs), "val": []}
-        cut = max(1, len(data["train"]) // 8)
-        data = {"train": data["train"][cut:], "val": data["train"][:cut]}
+        data = recorded_data(data_dirs)
     else:
         files = object_files(config, skill.parent, out_dir)
         data = {
