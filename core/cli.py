@@ -390,7 +390,9 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser("train", help="collect interactions in simulation and train models")
     train.add_argument("skill", type=Path, help="the collection skill, e.g. collect_pushes.yaml")
     train.add_argument("--out", type=Path, required=True, help="checkpoint folder")
-    train.add_argument("--preset", default="tiny", help="tiny, ship, paper or a preset YAML file")
+    train.add_argument(
+        "--preset", default="tiny", help="tiny, ship, ship_ff, paper or a preset YAML file"
+    )
     train.add_argument(
         "--data",
         type=Path,

@@ -233,6 +233,25 @@ def test_tiny_training_gives_checkpoints_the_explore_skill_can_use(tmp_path: Pat
     assert run.returncode == 0, run.stderr
 
 
+def test_a_feed_forward_alone_trains_one_model_per_link_count(tmp_path: Path) -> None:
+    """models: [ff] on one- and two-link objects: the noise net learns the first FF's force
+    error on its own link count (it was handed every object and raised on the first two-link
+    one)."""
+    preset = tmp_path / "ff.yaml"
+    preset.write_text(json.dumps({
+        "shipped_train": ["rect1", "artic_rect_rect"], "shipped_val": ["rect3", "hetero_rect_tri"],
+        "models": ["ff"], "interactions": ["push"], "hidden": 8, "epochs": 1, "noise_epochs": 1,
+        "filter_epochs": 0, "batch_size": 4, "collect_overrides": [
+            "tree.sequence.0.repeat.max=2", "components.affordances.with.interactions=[push]"],
+    }), encoding="utf-8")  # fmt: skip
+    out = tmp_path / "train"
+    result = run_vistac("-q", "train", str(SKILLS / "collect_pushes.yaml"), "--out", str(out),
+                        "--preset", str(preset))  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    for name in ("ff1/ff_push.pt", "ff2/ff_push.pt", "obs_noise_push.pt"):
+        assert (out / name).is_file()
+
+
 def test_explore_pull_pulls_six_times_and_ends_with_a_belief(tmp_path: Path) -> None:
     """The shipped pull skill runs to its end: its pulls keep the object in reach (they used
     to walk it towards the robot until no pull was left, and the run failed)."""

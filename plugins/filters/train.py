@@ -116,6 +116,13 @@ PRESETS: dict[str, TrainConfig] = {
         collect_overrides=("tree.sequence.0.repeat.max=8",), epochs=30, noise_epochs=3,
         filter_epochs=1, filter_sigma_points=16, filter_windows=8, batch_size=16, patience=10,
     ),
+    # The feed-forward baseline (one model per link count) on the ship collection, for the
+    # A-FF column of `vistac eval`: `--preset ship_ff --data SHIP_OUT/data`.
+    "ship_ff": TrainConfig(
+        objects="generated", models=("ff",), interactions=("push",), hidden=32,
+        collect_overrides=("tree.sequence.0.repeat.max=8",), epochs=30, noise_epochs=3,
+        filter_epochs=1, filter_sigma_points=16, filter_windows=8, batch_size=16, patience=10,
+    ),
     "paper": TrainConfig(
         objects="generated", collect_overrides=("tree.sequence.0.repeat.max=8",), hidden=64,
         epochs=60, noise_epochs=5, filter_epochs=1, filter_sigma_points=24, filter_windows=64,
@@ -464,13 +471,18 @@ def train_interaction(
 
     def train_noise(model: Any) -> None:
         """The noise net learns the first model's force error (the tactile expectation) and
-        how many steps that error persists."""
-        if "obs_noise" not in report:
-            report["obs_noise"] = _train_noise(noise_net, windows, model, config, rng)
-            errors = [predicted_forces(model, w) - torch.as_tensor(w.force_n, dtype=DTYPE)
-                      for w in data["val"] if w.kind == kind]  # fmt: skip
-            noise_net.evidence_steps.fill_(correlation_steps(errors))
-            report["evidence_steps"] = float(noise_net.evidence_steps)
+        how many steps that error persists, on the objects that model takes (an FF: those
+        of its link count)."""
+        if "obs_noise" in report:
+            return
+        links = getattr(model, "n_links", None)
+        own = windows if links is None else _only(windows, links)
+        report["obs_noise"] = _train_noise(noise_net, own, model, config, rng)
+        val = [w for w in data["val"] if w.kind == kind and links in (None, w.n_links)]
+        errors = [predicted_forces(model, w) - torch.as_tensor(w.force_n, dtype=DTYPE)
+                  for w in val]  # fmt: skip
+        noise_net.evidence_steps.fill_(correlation_steps(errors))
+        report["evidence_steps"] = float(noise_net.evidence_steps)
 
     for name in config.models:
         report[name] = _train_model(
