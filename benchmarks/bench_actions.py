@@ -58,7 +58,7 @@ def _components(**extra: dict[str, Any]) -> dict[str, dict[str, Any]]:
 def time_selection_s(repeats: int) -> tuple[float, float, int]:
     """(info-gain choice, random choice) median seconds, and the candidate count."""
     components = _components(
-        affordances={"plugin": "actions.affordances", "with": {"samples": 2 * CANDIDATES}},
+        affordances={"plugin": "actions.affordances", "with": {"samples": 4 * CANDIDATES}},
         planner={"plugin": "actions.info_gain", "with": {"horizon_s": HORIZON_S}},
         random={"plugin": "actions.random"},
     )

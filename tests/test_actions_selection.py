@@ -157,6 +157,26 @@ def test_fingers_never_descend_onto_or_sweep_over_another_link(tmp_path: Path) -
     assert all(_angle_deg(a.grasp_axis_rad % math.pi, 0.0) > 30.0 for a in on_large)
 
 
+def test_fingers_keep_their_clearance_from_every_link(tmp_path: Path) -> None:
+    """Two round links with a 33 mm gap: pushing the right one from the gap puts the closed
+    fingers (20 mm, 10-30 mm behind the contact) 3 mm from the left one, which a 5 mm
+    clearance refuses and no clearance allows."""
+    links = (_link(np.array([0.03, 0.03, 0.025]), (-0.0465, 0.45), exponents=1.0),
+             _link(np.array([0.03, 0.03, 0.025]), (0.0465, 0.45), exponents=1.0))  # fmt: skip
+
+    def from_the_gap(clearance_m: float) -> int:
+        sampler = _sampler(tmp_path, samples=256, interactions=["push"],
+                           finger_clearance_m=clearance_m)  # fmt: skip
+        actions = sampler.sample(_scene(*links), np.random.default_rng(6))
+        return sum(
+            a.link == 1 and _angle_deg(a.pd_rad, 0.0) < 10.0 and abs(a.cp_m[1] - 0.45) < 0.005
+            for a in actions
+        )
+
+    assert from_the_gap(0.0) > 0
+    assert from_the_gap(0.005) == 0
+
+
 def test_a_grasp_as_wide_as_the_gripper_opens_is_rejected(tmp_path: Path) -> None:
     with pytest.raises(ValidationError, match=r"max_grasp_width_m .* gripper_opening_m"):
         _sampler(tmp_path, interactions=["pull"], gripper_opening_m=0.085)

@@ -59,7 +59,7 @@ def skill(tmp_path_factory: pytest.TempPathFactory) -> Any:
     components = {
         "model": {"plugin": "filters.gnn", "with": {"checkpoint": str(CHECKPOINT), "hidden": 32}},
         "filter": {"plugin": "filters.dual", "with": {"sigma_points": 100}},
-        "affordances": {"plugin": "actions.affordances", "with": {"samples": 64}},
+        "affordances": {"plugin": "actions.affordances", "with": {"samples": 128}},
         "planner": {"plugin": "actions.info_gain", "with": {"horizon_s": HORIZON_S}},
     }
     ctx = build_components(components, tmp_path_factory.mktemp("skill"))
@@ -71,6 +71,7 @@ def _candidates(skill: Any, seed: int = 0) -> list[Action]:
     sampled: list[Action] = skill.component("affordances").sample(
         two_box_scene(), np.random.default_rng(seed)
     )
+    assert len(sampled) >= 32, "too few candidates: sample more"
     return sampled[:32]
 
 

@@ -107,6 +107,11 @@ class SuperquadricAffordances(OutlineSampler):
             (0.02, 0.024), description="(along, across the push) size of the closed fingers "
             "about the TCP: where they descend must be clear of every link",
         )  # fmt: skip
+        finger_clearance_m: float = Field(
+            0.005, ge=0, description="gap kept between every fitted link and the fingers "
+            "where they descend (and a closing finger's path): the fit's error and the corners "
+            "a superquadric rounds off",
+        )  # fmt: skip
         gripper_opening_m: float = Field(
             0.15, gt=0, description="distance between the pads of the open gripper (sim "
             "0.15, Robotiq 2F-85 0.085): where the open fingers descend for a grasp, each a "
@@ -193,7 +198,9 @@ class SuperquadricAffordances(OutlineSampler):
         start = point - self.config.approach_clearance_m * np.array(
             [np.cos(pd_rad), np.sin(pd_rad)]
         )
-        footprint = finger_footprint(start, pd_rad, self.config.finger_footprint_m)
+        footprint = finger_footprint(
+            start, pd_rad, self._with_clearance(*self.config.finger_footprint_m)
+        )
         if any(inside_link(link, footprint).any() for link in shape.links):
             return None
         return Push(point, pd_rad, self.config.speed_mps, self.config.duration_s, link=index)
@@ -222,9 +229,17 @@ class SuperquadricAffordances(OutlineSampler):
             link=index,
         )  # fmt: skip
 
+    def _with_clearance(self, along_m: float, across_m: float) -> tuple[float, float]:
+        """A footprint size (along, across, m) grown by ``finger_clearance_m`` on every side."""
+        margin_m = 2.0 * self.config.finger_clearance_m
+        return along_m + margin_m, across_m + margin_m
 
     def _grasp_blocked(
-        self, shape: ShapeEstimate, index: int, midpoint: FloatArray, axis_rad: float,
+        self,
+        shape: ShapeEstimate,
+        index: int,
+        midpoint: FloatArray,
+        axis_rad: float,
         width_m: float,
     ) -> bool:
         """Whether an open finger would descend onto a link, or a closing finger would sweep
@@ -236,10 +251,12 @@ class SuperquadricAffordances(OutlineSampler):
         contact_m = 0.5 * (width_m + pad_m)  # pad centre, on the link
         axis = np.array([np.cos(axis_rad), np.sin(axis_rad)])
         for side in (-1.0, 1.0):
-            pad = finger_footprint(midpoint + side * open_m * axis, axis_rad, (pad_m, across_m))
+            pad = finger_footprint(
+                midpoint + side * open_m * axis, axis_rad, self._with_clearance(pad_m, across_m)
+            )
             sweep = finger_footprint(
                 midpoint + side * 0.5 * (open_m + contact_m) * axis, axis_rad,
-                (open_m - contact_m + pad_m, across_m), per_side=9,
+                self._with_clearance(open_m - contact_m + pad_m, across_m), per_side=9,
             )  # fmt: skip
             for other, link in enumerate(shape.links):
                 if inside_link(link, pad if other == index else sweep).any():
