@@ -116,19 +116,17 @@ PRESETS: dict[str, TrainConfig] = {
         collect_overrides=("tree.sequence.0.repeat.max=8",), epochs=30, noise_epochs=3,
         filter_epochs=1, filter_sigma_points=16, filter_windows=8, batch_size=16, patience=10,
     ),
-    # The feed-forward baseline (one model per link count) on the ship collection, for the
-    # A-FF column of `vistac eval`: `--preset ship_ff --data SHIP_OUT/data`.
-    "ship_ff": TrainConfig(
-        objects="generated", models=("ff",), interactions=("push",), hidden=32,
-        collect_overrides=("tree.sequence.0.repeat.max=8",), epochs=30, noise_epochs=3,
-        filter_epochs=1, filter_sigma_points=16, filter_windows=8, batch_size=16, patience=10,
-    ),
     "paper": TrainConfig(
         objects="generated", collect_overrides=("tree.sequence.0.repeat.max=8",), hidden=64,
         epochs=60, noise_epochs=5, filter_epochs=1, filter_sigma_points=24, filter_windows=64,
         patience=8,
     ),
 }  # fmt: skip
+PRESETS["ship_ff"] = PRESETS["ship"].model_copy(
+    update={"models": ("ff",), "interactions": ("push",)}
+)
+"""The feed-forward baseline (one model per link count) on the ship collection, for the A-FF
+column of `vistac eval`: ``--preset ship_ff --data SHIP_OUT/data``."""
 
 
 def load_preset(name: str) -> TrainConfig:
@@ -621,12 +619,12 @@ def recorded_data(data_dirs: list[Path]) -> dict[str, list[Trajectory]]:
         missing = [str(folder / "val") for folder in collections if not (folder / "val").is_dir()]
         if missing:
             raise ConfigError(f"--data: no validation runs in {', '.join(missing)}")
-        runs = {
-            split: sorted(run for folder in collections for run in (folder / split).iterdir())
-            for split in ("train", "val")
-        }
-        return {split: load_trajectories([r for r in found if r.is_dir()])
-                for split, found in runs.items()}  # fmt: skip
+
+        def runs(split: str) -> list[Path]:
+            found = (run for folder in collections for run in (folder / split).iterdir())
+            return sorted(run for run in found if run.is_dir())
+
+        return {split: load_trajectories(runs(split)) for split in ("train", "val")}
     trajectories = load_trajectories(data_dirs)
     cut = max(1, len(trajectories) // 8)
     return {"train": trajectories[cut:], "val": trajectories[:cut]}
