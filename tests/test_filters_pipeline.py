@@ -207,6 +207,17 @@ def test_an_unknown_preset_is_a_clear_error(tmp_path: Path) -> None:
     assert "unknown preset 'huge'" in result.stderr
 
 
+def test_training_data_without_validation_runs_is_refused_before_any_output(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "data" / "train").mkdir(parents=True)
+    out = tmp_path / "out"
+    result = run_vistac("train", str(SKILLS / "collect_pushes.yaml"), "--out", str(out),
+                        "--data", str(tmp_path / "data"))  # fmt: skip
+    assert result.returncode == 2 and "no validation runs in" in result.stderr
+    assert not out.exists()
+
+
 def test_tiny_training_gives_checkpoints_the_explore_skill_can_use(tmp_path: Path) -> None:
     out = tmp_path / "train"
     result = run_vistac("-q", "train", str(SKILLS / "collect_pushes.yaml"), "--out", str(out))

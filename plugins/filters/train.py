@@ -635,11 +635,10 @@ def train(
 ) -> dict[str, Any]:
     """Collect (unless ``data_dirs``) and train; writes checkpoints and ``train.json``."""
     start_s = time.perf_counter()
-    out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
-    if data_dirs:
-        data = recorded_data(data_dirs)
-    else:
+    data = recorded_data(data_dirs) if data_dirs else None  # bad --data: no out_dir made
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if data is None:
         files = object_files(config, skill.parent, out_dir)
         data = {
             split: load_trajectories(collect(skill, paths, out_dir / "data" / split, config))
