@@ -27,8 +27,14 @@ from vistac.plugins.filters.active import (
 )
 from vistac.plugins.filters.data import Trajectory, acted_link
 from vistac.plugins.filters.evaluate import read_skill
-from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput
-from vistac.plugins.filters.train import load_preset, predicted_forces
+from vistac.plugins.filters.nets import RATE_SCALE_RADPS, SPEED_SCALE_MPS
+from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput, StateLayout
+from vistac.plugins.filters.train import (
+    disturb_twist,
+    load_preset,
+    predicted_forces,
+    rollout_errors,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 SKILLS = ROOT / "skills"
@@ -157,6 +163,33 @@ def test_validation_error_by_hand() -> None:
     # open loop over 3 steps: the offset adds up (1, 2, 3 cm)
     errors = validation_error(_OffsetModel(), windows, rollout_steps=3, batch_size=8)
     assert errors["val_error"] == pytest.approx((1 + 4 + 9) / 3 / 6 + 0.125)
+
+
+def test_rollout_variance_adds_up_along_each_rollout() -> None:
+    """A 1 cm drift per step with unit process variance: at step k of a rollout the error is
+    k cm and the variance k (x / 0.01 m scale, 1 / 0.01^2 in those units), restarting with
+    every rollout."""
+    window = _trajectory("a", steps=7)
+    rows = list(rollout_errors(_OffsetModel(), [window], rollout_steps=3))
+    assert len(rows) == 6
+    drift = [float(error[0, 0, 0]) for error, _, _ in rows]
+    variance = [float(var[0, 0, 0]) * 0.01**2 for _, var, _ in rows]
+    assert drift == pytest.approx([1, 2, 3, 1, 2, 3])
+    assert variance == pytest.approx([1, 2, 3, 1, 2, 3])
+
+
+def test_twist_noise_disturbs_only_the_twist_a_rollout_starts_from() -> None:
+    layout = StateLayout(2)
+    states = torch.arange(layout.size, dtype=DTYPE).expand(4000, 1, -1)
+    generator = torch.Generator().manual_seed(0)
+    disturbed = disturb_twist(states, layout, 0.5, generator)
+    change = (disturbed - states)[:, 0]
+    twist = [layout.index(f"{name}_{link}") for link in (0, 1) for name in ("vx", "vy", "omega")]
+    untouched = [i for i in range(layout.size) if i not in twist]
+    assert torch.equal(change[:, untouched], torch.zeros_like(change[:, untouched]))
+    expected = 0.5 * torch.tensor([SPEED_SCALE_MPS, SPEED_SCALE_MPS, RATE_SCALE_RADPS] * 2)
+    torch.testing.assert_close(change[:, twist].std(0), expected.to(DTYPE), rtol=0.05, atol=0)
+    assert disturb_twist(states, layout, 0.0, generator) is states
 
 
 def test_active_settings_from_presets_files_and_options(tmp_path: Path) -> None:

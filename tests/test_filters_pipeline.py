@@ -15,8 +15,10 @@ from vistac.objects import load_object
 from vistac.plugins.filters.component import DualFilterComponent, nearest_link, relative_poses
 from vistac.plugins.filters.data import link_geometry, unwrapped_twist
 from vistac.plugins.filters.state import StateLayout
+from vistac.plugins.filters.dual import Belief
 from vistac.plugins.filters.train import (
     TrainConfig,
+    belief_loss,
     correlation_steps,
     fit,
     object_files,
@@ -91,6 +93,26 @@ def test_fit_keeps_the_best_epoch_and_never_a_worse_model_than_the_start() -> No
     assert 0.4 < kept < 0.6  # Adam: about 0.1 per step; the last epoch is the best
     kept, epochs = _fit_quadratic(train_target=1.0, val_target=-1.0)
     assert kept == 0.0 and epochs == 2  # every epoch moved away: the start is kept
+
+
+def test_belief_loss_by_hand_and_across_a_constraint() -> None:
+    """One link, the belief equal to the starting one (std 1 cm, 0.1 rad, ... in the loss's
+    units: 1; the parameters' 1): with the 1% floor each entry's variance is 1.01, and an
+    error of one unit in x gives 0.5 (1 / 1.01 + 10 log 1.01) / 10 + 1 / 10. A belief with
+    no variance left across a direction (a joint's constraint) that the truth misses by
+    0.1 mm costs a few units, not the 1e10 of the exact NLL."""
+    layout = StateLayout(1)
+    scale = torch.tensor([0.01, 0.01, 0.1, 0.01, 0.01, 0.1] + [1.0] * 4, dtype=torch.float64)
+    belief = Belief(torch.zeros(10, dtype=torch.float64), torch.diag(scale**2))
+    truth = torch.zeros(10, dtype=torch.float64)
+    truth[0] = 0.01
+    expected = 0.5 * (1 / 1.01 + 10 * np.log(1.01)) / 10 + 1 / 10
+    assert float(belief_loss(truth, belief, scale**2, layout)) == pytest.approx(expected)
+    cov = belief.cov.clone()
+    cov[0, 0] = cov[1, 1] = cov[0, 1] = cov[1, 0] = 0.01**2  # x and y move together
+    truth[:2] = torch.tensor([0.0001, -0.0001])
+    loss = float(belief_loss(truth, Belief(belief.mean, cov), scale**2, layout))
+    assert abs(loss) < 5.0
 
 
 def test_correlation_steps_of_known_error_sequences() -> None:
