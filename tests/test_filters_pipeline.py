@@ -14,8 +14,8 @@ from vistac.errors import ConfigError
 from vistac.objects import load_object
 from vistac.plugins.filters.component import DualFilterComponent, nearest_link, relative_poses
 from vistac.plugins.filters.data import link_geometry, unwrapped_twist
-from vistac.plugins.filters.state import StateLayout
 from vistac.plugins.filters.dual import Belief
+from vistac.plugins.filters.state import StateLayout
 from vistac.plugins.filters.train import (
     TrainConfig,
     belief_loss,
