@@ -3,8 +3,9 @@
 1. Collect: run the collection skill once per training and validation object (or read
    recorded run folders given with ``--data``).
 2. Process model (per interaction type and model): open-loop rollouts of ``rollout_steps``
-   from the true state, loss = Gaussian NLL of the true next pose under the predicted mean
-   and learned process noise + MSE of the mean + NLL of the measured finger force (IV-B2).
+   from the true pose and a disturbed twist (``twist_noise``, see :func:`rollout_errors`),
+   loss = Gaussian NLL of the true next pose under the predicted mean and the learned
+   process noise + MSE of the mean + NLL of the measured finger force (IV-B2).
    With ``missed_pushes``, each recorded push also goes in moved to miss the object
    (:func:`vistac.plugins.filters.data.missed_push`).
 3. Observation noise: ObsNoiseNet by the NLL of the measured depth image and force around
@@ -613,7 +614,7 @@ def _train_model(
             yield rollout_loss(model, batch, config.rollout_steps, config.twist_noise, generator)
 
     def val() -> float:
-        """The same disturbances every epoch, so that epochs compare."""
+        """Twist disturbances drawn from the same seed every epoch (the batches are shuffled)."""
         fixed = torch.Generator().manual_seed(config.seed + 1)
         losses = [float(rollout_loss(model, b, config.rollout_steps, config.twist_noise, fixed))
                   for b in batches(windows["val"], config.batch_size, rng)]  # fmt: skip
