@@ -267,13 +267,11 @@ def disturb_twist(
     """states [B, 1, n] with each link's twist plus noise * the speed scales (a copy)."""
     if noise == 0.0:
         return states
+    states = states.clone()
+    twist = layout.link_pose(states)[..., 3:]  # a view of the copy: [B, 1, L, 3]
     scale = torch.tensor([SPEED_SCALE_MPS, SPEED_SCALE_MPS, RATE_SCALE_RADPS], dtype=DTYPE)
-    shape = (*states.shape[:-1], layout.n_links, 3)
-    change = torch.zeros(*shape[:-1], 6, dtype=DTYPE)
-    change[..., 3:] = noise * scale * torch.randn(shape, generator=generator, dtype=DTYPE)
-    offset = torch.zeros_like(states)
-    offset[..., layout.pose_slice] = change.flatten(-2)
-    return states + offset
+    twist += noise * scale * torch.randn(twist.shape, generator=generator, dtype=DTYPE)
+    return states
 
 
 def rollout_loss(
