@@ -16,6 +16,7 @@ from vistac.plugins.filters.evaluate import (
     EvalOptions,
     calibration_table,
     chosen_variants,
+    log_score,
     match_links,
     normalised_errors,
     nrmse,
@@ -360,8 +361,21 @@ def test_normalised_errors_are_in_stds_of_the_matched_link() -> None:
         "f_j_0": {"mean": 0.1, "std": 0.05},
     }  # fmt: skip
     truth = {"m_1": 1.0, "f_1": 0.4, "com_x_1": 0.0, "com_y_1": 0.0, "f_j_0": 0.2}
-    z = normalised_errors(belief, truth, {0: 1})  # com_y has no std: left out
-    assert z == pytest.approx([2.0, -2.0, 1.0, -2.0])
+    entries = normalised_errors(belief, truth, {0: 1})  # com_y has no std: left out
+    assert [name for name, _, _ in entries] == ["m_0", "f_0", "com_x_0", "f_j_0"]
+    assert [z for _, z, _ in entries] == pytest.approx([2.0, -2.0, 1.0, -2.0])
+    assert [std for _, _, std in entries] == pytest.approx([0.1, 0.05, 0.01, 0.05])
+
+
+def test_log_score_is_the_gaussian_nll_in_range_units() -> None:
+    ranges = {"m": 1.4, "f": 0.4, "CoM": 0.05, "f_j": 0.5}
+    # std 0.14 kg = a tenth of the mass range, 1 std off: 0.5 + ln 0.1 + ln sqrt(2 pi)
+    assert log_score("m_1", 1.0, 0.14, ranges) == pytest.approx(0.5 + math.log(0.1) + 0.9189385)
+    assert log_score("com_y_0", 0.0, 0.05, ranges) == pytest.approx(0.9189385)
+    assert log_score("f_j_0", 0.0, 0.5, ranges) == pytest.approx(0.9189385)
+    # the same error: a belief sure of a wrong value scores worse than an honest one
+    error = 0.1
+    assert log_score("f_0", error / 0.01, 0.01, ranges) > log_score("f_0", error / 0.1, 0.1, ranges)
 
 
 def test_tables_have_one_column_per_variant() -> None:
@@ -381,13 +395,16 @@ def test_tables_have_one_column_per_variant() -> None:
     assert "| m_0 | 0.000 | 0.100 | 0.200 | 0.300 | 0.400 |" in markdown
     assert "| homogeneous | GNN-fixed | 10.000 | 0.000 | 1 |" in markdown
     for record, z in zip(records, ([0.5, -1.0], [3.0, 1.5], [-2.5, 0.0]), strict=False):
-        record["normalised_errors"] = z
+        record["normalised_errors"] = [("m_0", value, 0.14) for value in z]
     for record in records[3:]:
         record["normalised_errors"] = []
-    calibration = calibration_table(records)
+    calibration = calibration_table(records, RANGES)
     assert list(calibration) == ["A-GNN", "U-GNN", "R-GNN"]  # (GNN-fixed estimates nothing)
-    assert calibration["U-GNN"] == {"within_2_std": 0.5, "median_abs_z": 2.25, "entries": 2.0}
-    assert "| R-GNN | 0.500 | 1.250 | 2 |" in tables_markdown(tables, tracking, calibration)
+    score = math.log(0.1) + 0.5 * math.log(2 * math.pi) + 0.5 * (3.0**2 + 1.5**2) / 2
+    assert calibration["U-GNN"] == pytest.approx(
+        {"within_2_std": 0.5, "median_abs_z": 2.25, "log_score": score, "entries": 2.0}
+    )
+    assert "| R-GNN | 0.500 | 1.250 | " in tables_markdown(tables, tracking, calibration)
     curves = nrmse_by_interaction(records, RANGES, [*labels, "GNN-fixed"])
     assert curves["R-GNN"] == pytest.approx([0.1])
     assert curves["GNN-fixed"] == pytest.approx([0.5 / 1.4])  # m error 1.0 / 1.4, f error 0

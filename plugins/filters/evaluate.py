@@ -186,18 +186,26 @@ def parameter_pairs(
 
 def normalised_errors(
     belief: dict[str, dict[str, float]], truth: dict[str, float], links: dict[int, int]
-) -> list[float]:
-    """``(estimate - truth) / std`` of m, f, com_x and com_y per matched link (``links``: belief
-    to true link) and of every joint friction: an honest belief has about 95 % of them within
-    +-2."""
+) -> list[tuple[str, float, float]]:
+    """(belief entry, ``(estimate - truth) / std``, std) of m, f, com_x and com_y per matched
+    link (``links``: belief to true link) and of every joint friction: an honest belief has
+    about 95 % of the normalised errors within +-2."""
     names = [(f"{key}_{b}", f"{key}_{t}") for b, t in links.items()
              for key in ("m", "f", "com_x", "com_y")]  # fmt: skip
     names += [(name, name) for name in truth if name.startswith("f_j_")]
     return [
-        (belief[ours]["mean"] - truth[theirs]) / belief[ours]["std"]
+        (ours, (belief[ours]["mean"] - truth[theirs]) / belief[ours]["std"], belief[ours]["std"])
         for ours, theirs in names
         if ours in belief and theirs in truth and belief[ours]["std"] > 0
     ]
+
+
+def log_score(entry: str, z: float, std: float, ranges: dict[str, float]) -> float:
+    """Gaussian negative log likelihood of the truth under a belief entry's marginal, the
+    std in units of the entry family's range (``com_x_0`` -> CoM): rewards an estimate that
+    is close and a std that is honest; a belief that is sure and wrong scores worst."""
+    family = "CoM" if entry.startswith("com_") else family_of(entry)
+    return 0.5 * z**2 + math.log(std / ranges[family]) + 0.5 * math.log(2 * math.pi)
 
 
 def nrmse(pairs: Sequence[tuple[float, float]], value_range: float) -> float:
@@ -727,15 +735,23 @@ def tracking_table(records: Sequence[dict[str, Any]]) -> dict[str, dict[str, dic
     return table
 
 
-def calibration_table(records: Sequence[dict[str, Any]]) -> dict[str, dict[str, float]]:
-    """{variant: share of final normalised errors within +-2 std, their median |z|, count} for
-    the variants that estimate parameters."""
+def calibration_table(
+    records: Sequence[dict[str, Any]], ranges: dict[str, float]
+) -> dict[str, dict[str, float]]:
+    """{variant: share of final normalised errors within +-2 std, their median |z|, the mean
+    ``log_score``, count} for the variants that estimate parameters."""
     table: dict[str, dict[str, float]] = {}
     for variant in dict.fromkeys(r["variant"] for r in records if r["estimate_parameters"]):
-        z = np.abs([e for r in _scored(records, variant) for e in r["normalised_errors"]])
-        if z.size:
-            table[variant] = {"within_2_std": float(np.mean(z <= 2.0)),
-                              "median_abs_z": float(np.median(z)), "entries": float(z.size)}
+        entries = [e for r in _scored(records, variant) for e in r["normalised_errors"]]
+        if entries:
+            z = np.abs([error for _, error, _ in entries])
+            scores = [log_score(name, error, std, ranges) for name, error, std in entries]
+            table[variant] = {
+                "within_2_std": float(np.mean(z <= 2.0)),
+                "median_abs_z": float(np.median(z)),
+                "log_score": float(np.mean(scores)),
+                "entries": float(z.size),
+            }
     return table
 
 
@@ -787,11 +803,18 @@ def tables_markdown(
                 f"{_fmt(math.degrees(values['angle_rad']))} | {values['runs']:.0f} |"
             ]
     lines += ["", "# Calibration ((estimate - truth) / std of the final m, f, CoM x/y, f_j)", ""]
-    lines += ["| variant | within 2 std (0.95 if honest) | median abs | entries |",
-              "|---|---:|---:|---:|"]  # fmt: skip
+    lines += [
+        "Log score: the mean negative log likelihood of the true value under each final "
+        "Gaussian marginal, std in units of the parameter's range; lower is better, and "
+        "a sure but wrong estimate scores worst.",
+        "",
+    ]
+    lines += ["| variant | within 2 std (0.95 if honest) | median abs | log score | entries |",
+              "|---|---:|---:|---:|---:|"]  # fmt: skip
     for variant, values in (calibration or {}).items():
         lines += [f"| {variant} | {_fmt(values['within_2_std'])} | "
-                  f"{_fmt(values['median_abs_z'])} | {values['entries']:.0f} |"]  # fmt: skip
+                  f"{_fmt(values['median_abs_z'])} | {_fmt(values['log_score'])} | "
+                  f"{values['entries']:.0f} |"]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
@@ -895,7 +918,7 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
         ),
         "nrmse_vs_interactions": nrmse_by_interaction(records, ranges, labels),
         "tracking": tracking_table(records),
-        "calibration": calibration_table(records),
+        "calibration": calibration_table(records, ranges),
         "runs": records,
     }  # fmt: skip
     _write_reports(report, options.out)
