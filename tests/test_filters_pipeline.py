@@ -133,6 +133,9 @@ def test_the_filter_counts_the_noise_checkpoints_evidence_steps(tmp_path: Path) 
     settings: dict[str, Any] = {"noise_checkpoint": str(tmp_path / "noise.pt")}
     specs = {"model": {"plugin": "filters.analytical"},
              "filter": {"plugin": "filters.dual", "with": settings}}  # fmt: skip
+    # the measured steps times the default evidence_factor (2)
+    assert build_components(specs, tmp_path).component("filter").evidence_scale == 1 / 50
+    settings["evidence_factor"] = 1.0
     assert build_components(specs, tmp_path).component("filter").evidence_scale == 1 / 25
     settings["evidence_steps"] = 5.0  # the skill's setting wins
     assert build_components(specs, tmp_path).component("filter").evidence_scale == 1 / 5
