@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -23,6 +23,7 @@ from vistac.plugins.filters.train import (
     fit,
     object_files,
     recorded_data,
+    training_filter,
 )
 from vistac.protocols import Filter, Scene
 from vistac.testing import build_components, check_component_class
@@ -140,6 +141,23 @@ def test_the_filter_counts_the_noise_checkpoints_evidence_steps(tmp_path: Path) 
     settings["evidence_steps"] = 5.0  # the skill's setting wins
     assert build_components(specs, tmp_path).component("filter").evidence_scale == 1 / 5
     assert _filter(tmp_path, {"plugin": "filters.analytical"}).evidence_scale == 1.0  # untrained
+
+
+def test_the_end_to_end_epochs_filter_with_a_skills_evidence_and_bounds(tmp_path: Path) -> None:
+    from vistac.plugins.filters.observation import ObsNoiseNet, ProjectionObservationModel
+
+    noise = ObsNoiseNet()
+    noise.evidence_steps.fill_(20.0)
+    model = build_components({"m": {"plugin": "filters.analytical"}}, tmp_path).component("m")
+    observation = cast(ProjectionObservationModel, None)  # stored, not used to build
+    dual = training_filter(StateLayout(2), model, observation, noise, sigma_points=16)
+    skill = DualFilterComponent.Config()
+    assert dual.sigma_points == 16
+    assert dual.evidence_scale == pytest.approx(1 / (20.0 * skill.evidence_factor))
+    assert dual.twist_bound == (skill.max_link_speed_mps, skill.max_link_rate_radps)
+    assert (dual.liu_west_delta, dual.min_ess_fraction) == (
+        skill.liu_west_delta, skill.min_ess_fraction
+    )
 
 
 def test_filters_dual_is_a_filter_component(tmp_path: Path) -> None:

@@ -36,7 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 from vistac.errors import ConfigError, DataError
 from vistac.objects import interleave_types, link_frames, load_object, write_configurations
-from vistac.plugins.filters.component import Prior, prior_belief
+from vistac.plugins.filters.component import DualFilterComponent, Prior, prior_belief
 from vistac.plugins.filters.data import (
     Trajectory,
     describe,
@@ -369,7 +369,7 @@ def filter_loss(
     truth = true_states(window, layout)
     projector = _projector(window, rng)
     obs_model = ProjectionObservationModel(layout, projector, noise_net)
-    filter_ = DualFilter(layout, model, obs_model, config.filter_sigma_points)
+    filter_ = training_filter(layout, model, obs_model, noise_net, config.filter_sigma_points)
     belief = _initial_belief(truth[0], layout, Prior())
     measured = observations(window, projector)
     inputs = process_inputs([window])
@@ -381,6 +381,26 @@ def filter_loss(
         )
         losses.append(belief_loss(truth[step], belief, start_var, layout))
     return torch.stack(losses).mean()
+
+
+def training_filter(
+    layout: StateLayout,
+    model: Any,
+    obs_model: ProjectionObservationModel,
+    noise_net: ObsNoiseNet,
+    sigma_points: int,
+) -> DualFilter:
+    """The dual filter the end-to-end epochs train through, with a skill's default settings
+    (``filters.dual``): the noise net's evidence steps times the evidence factor, the twist
+    bound; only the number of sigma points is the preset's."""
+    settings = DualFilterComponent.Config()
+    steps = max(1.0, float(noise_net.evidence_steps) * settings.evidence_factor)
+    return DualFilter(
+        layout, model, obs_model, sigma_points, settings.liu_west_delta,
+        min_ess_fraction=settings.min_ess_fraction, pose_std_floor=settings.pose_std_floor,
+        evidence_scale=1.0 / steps,
+        twist_bound=(settings.max_link_speed_mps, settings.max_link_rate_radps),
+    )  # fmt: skip
 
 
 def belief_loss(truth: Tensor, belief: Belief, start_var: Tensor, layout: StateLayout) -> Tensor:
