@@ -145,12 +145,18 @@ class URArm(Component):
         return self._connected
 
     def _abandon(self) -> None:
-        """Disconnect the current interfaces, each with a deadline."""
-        old = (self._control, self._receive)
-        self._control = self._receive = None
-        for interface in old:
-            if interface is not None:
-                _disconnect(interface)
+        """Disconnect the current interfaces, each with a deadline, while no command runs on
+        them (a stuck command's lock is waited for at most ``_DISCONNECT_TIMEOUT_S``)."""
+        locked = self._lock.acquire(timeout=_DISCONNECT_TIMEOUT_S)
+        try:
+            old = (self._control, self._receive)
+            self._control = self._receive = None
+            for interface in old:
+                if interface is not None:
+                    _disconnect(interface)
+        finally:
+            if locked:
+                self._lock.release()
 
     def _lost(self, reason: str) -> HardwareError:
         """Mark the arm disconnected and return the error to raise."""
@@ -193,6 +199,8 @@ class URArm(Component):
             if not self._lock.acquire(timeout=deadline_s):
                 raise HardwareError(f"{what}: another command to the arm is still blocked")
             try:
+                if control is not self._control:  # abandoned while this call waited
+                    raise HardwareError(f"{what}: the connection was closed")
                 return command(control)
             finally:
                 self._lock.release()
@@ -348,11 +356,13 @@ class URArm(Component):
 
 
 def _disconnect(interface: Any) -> None:
-    """Disconnect within ``_DISCONNECT_TIMEOUT_S``. An interface stuck in a call can not be
-    destroyed safely (its C++ destructor joins the stuck thread, or aborts the process at
-    exit), so it is kept alive for the rest of the process instead."""
+    """Disconnect within ``_DISCONNECT_TIMEOUT_S``, then keep the interface alive for the rest
+    of the process: its C++ destructor joins the interface's threads, which hangs on one stuck
+    in a call, aborts the process at exit, and once crashed the process right after a dropped
+    connection was re-opened. An arm reconnects rarely, so the few kept interfaces cost
+    little."""
     try:
         call_with_deadline(interface.disconnect, _DISCONNECT_TIMEOUT_S, "RTDE disconnect")
     except HardwareError as exc:
         log.warning("%s; leaving the stuck RTDE interface behind", exc)
-        ctypes.pythonapi.Py_IncRef(ctypes.py_object(interface))
+    ctypes.pythonapi.Py_IncRef(ctypes.py_object(interface))
