@@ -296,6 +296,33 @@ class DualFilterComponent(Component):
             0.002, ge=0, description="pose std added between interactions (m, and rad / 10)"
         )
 
+        def evidence_scale(self, measured_steps: float | None) -> float:
+            """1 / the steps of an interaction that count as one independent observation:
+            ``evidence_steps``, else ``measured_steps`` (a noise checkpoint's) times
+            ``evidence_factor``; 1 when neither is known."""
+            if self.evidence_steps is not None:
+                return 1.0 / self.evidence_steps
+            if measured_steps is None:
+                return 1.0
+            return 1.0 / max(measured_steps * self.evidence_factor, 1.0)
+
+        def dual_filter(
+            self,
+            layout: StateLayout,
+            model: Any,
+            observation: ProjectionObservationModel,
+            measured_steps: float | None,
+            sigma_points: int | None = None,
+        ) -> DualFilter:
+            """The DualFilter of these settings (``sigma_points`` overrides the config's)."""
+            return DualFilter(
+                layout, model, observation, sigma_points or self.sigma_points,
+                self.liu_west_delta, min_ess_fraction=self.min_ess_fraction,
+                pose_std_floor=self.pose_std_floor,
+                evidence_scale=self.evidence_scale(measured_steps),
+                twist_bound=(self.max_link_speed_mps, self.max_link_rate_radps),
+            )  # fmt: skip
+
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
         super().__init__(config, ctx)
         self.config: DualFilterComponent.Config = config
@@ -571,24 +598,18 @@ class DualFilterComponent(Component):
             self.layout, projector, self.noise_net,
             occlusion_margin_m=config.occlusion_margin_m, robot_radius_m=config.robot_radius_m,
         )  # fmt: skip
-        return DualFilter(
-            self.layout, self.model, observation, config.sigma_points, config.liu_west_delta,
-            min_ess_fraction=config.min_ess_fraction, pose_std_floor=config.pose_std_floor,
-            evidence_scale=self.evidence_scale,
-            twist_bound=(config.max_link_speed_mps, config.max_link_rate_radps),
-        )  # fmt: skip
+        return config.dual_filter(self.layout, self.model, observation, self._measured_steps())
+
+    def _measured_steps(self) -> float | None:
+        """The noise checkpoint's evidence steps; None without a checkpoint."""
+        if self.config.noise_checkpoint is None:
+            return None
+        return float(self.noise_net.evidence_steps)
 
     @property
     def evidence_scale(self) -> float:
-        """1 / the steps of an interaction that count as one independent observation (the
-        config's ``evidence_steps``, else the noise checkpoint's times ``evidence_factor``;
-        1 without a checkpoint)."""
-        if self.config.evidence_steps is not None:
-            return 1.0 / self.config.evidence_steps
-        if self.config.noise_checkpoint is None:
-            return 1.0
-        measured = float(self.noise_net.evidence_steps)
-        return 1.0 / max(measured * self.config.evidence_factor, 1.0)
+        """See ``Config.evidence_scale``."""
+        return self.config.evidence_scale(self._measured_steps())
 
     def _inputs(self, episode: Episode) -> Any:
         """A function StepObservation -> ProcessInput for this episode's action."""

@@ -390,17 +390,11 @@ def training_filter(
     noise_net: ObsNoiseNet,
     sigma_points: int,
 ) -> DualFilter:
-    """The dual filter the end-to-end epochs train through, with a skill's default settings
-    (``filters.dual``): the noise net's evidence steps times the evidence factor, the twist
-    bound; only the number of sigma points is the preset's."""
+    """The dual filter the end-to-end epochs train through: a skill's default ``filters.dual``
+    with the noise net's evidence steps; only the number of sigma points is the preset's."""
     settings = DualFilterComponent.Config()
-    steps = max(1.0, float(noise_net.evidence_steps) * settings.evidence_factor)
-    return DualFilter(
-        layout, model, obs_model, sigma_points, settings.liu_west_delta,
-        min_ess_fraction=settings.min_ess_fraction, pose_std_floor=settings.pose_std_floor,
-        evidence_scale=1.0 / steps,
-        twist_bound=(settings.max_link_speed_mps, settings.max_link_rate_radps),
-    )  # fmt: skip
+    measured = float(noise_net.evidence_steps)
+    return settings.dual_filter(layout, model, obs_model, measured, sigma_points)
 
 
 def belief_loss(truth: Tensor, belief: Belief, start_var: Tensor, layout: StateLayout) -> Tensor:
