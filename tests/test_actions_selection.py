@@ -19,7 +19,11 @@ from vistac.plugins.actions.affordances import (
     inside_link,
     link_outline,
 )
-from vistac.plugins.actions.info_gain import InfoGainSelector, gaussian_kl
+from vistac.plugins.actions.info_gain import (
+    InfoGainSelector,
+    gaussian_kl,
+    parameter_information,
+)
 from vistac.plugins.actions.selectors import UniformSelector
 from vistac.plugins.filters.dual import Belief
 from vistac.plugins.shape.superquadric import inside_outside, to_superquadric_frame
@@ -335,13 +339,30 @@ def test_gaussian_kl_matches_hand_computed_values(p: Any, q: Any, expected: floa
     assert float(gaussian_kl(_t(q[0]), _t(q[1]), _t(q[0]), _t(q[1]))) == pytest.approx(0.0)
 
 
-def _info_gain(tmp_path: Path, seed: int = 0) -> tuple[InfoGainSelector, Any]:
+def test_parameter_information_matches_the_scalar_linear_gaussian_case() -> None:
+    # theta ~ N(0, s2), y = a theta + process noise q, observed with noise r:
+    # I(theta; y_obs) = 0.5 ln(1 + a^2 s2 / (q + r)).
+    s2, a, q, r = 0.04, 3.0, 0.01, 0.02
+    cov = torch.tensor([[a * a * s2 + q, a * s2], [a * s2, s2]], dtype=torch.float64)
+    observed, noise_var = torch.tensor([0]), torch.tensor([r], dtype=torch.float64)
+    info = parameter_information(cov, observed, slice(1, 2), noise_var)
+    assert float(info) == pytest.approx(0.5 * math.log(1 + a * a * s2 / (q + r)), rel=1e-12)
+    uncorrelated = cov.clone()
+    uncorrelated[0, 1] = uncorrelated[1, 0] = 0.0
+    info = parameter_information(uncorrelated, observed, slice(1, 2), noise_var)
+    assert float(info) == pytest.approx(0.0, abs=1e-12)
+
+
+def _info_gain(
+    tmp_path: Path, seed: int = 0, objective: str = "joint"
+) -> tuple[InfoGainSelector, Any]:
     """An info-gain selector over a dual filter with the analytical model, initialised on a
     90 x 90 mm box at (0, 0.45)."""
+    planner = {"sigma_points": 100, "objective": objective}
     specs = {
         "model": {"plugin": "filters.analytical"},
         "filter": {"plugin": "filters.dual"},
-        "planner": {"plugin": "actions.info_gain", "with": {"sigma_points": 100}},
+        "planner": {"plugin": "actions.info_gain", "with": planner},
     }
     ctx = build_components(specs, tmp_path, seed=seed)
     filter_ = ctx.component("filter")
@@ -364,14 +385,15 @@ CENTRAL_Y = Push(np.array([0.0, 0.405]), math.pi / 2, 0.02)
 """Pushes along +y through the middle of the near side: reveals com_x, not com_y."""
 
 
+@pytest.mark.parametrize("objective", ["joint", "parameters"])
 @pytest.mark.parametrize(
     ("uncertain", "informative", "other"),
     [("com_y_0", CENTRAL_X, CENTRAL_Y), ("com_x_0", CENTRAL_Y, CENTRAL_X)],
 )
 def test_info_gain_prefers_the_action_that_excites_the_uncertain_parameter(
-    tmp_path: Path, uncertain: str, informative: Push, other: Push
+    tmp_path: Path, uncertain: str, informative: Push, other: Push, objective: str
 ) -> None:
-    selector, filter_ = _info_gain(tmp_path)
+    selector, filter_ = _info_gain(tmp_path, objective=objective)
     _certain_but(filter_, uncertain)
     gains = selector.gains([other, informative])
     assert float(gains[1]) > 1.2 * float(gains[0])
