@@ -354,7 +354,7 @@ def test_parameter_information_matches_the_scalar_linear_gaussian_case() -> None
 
 
 def _info_gain(
-    tmp_path: Path, seed: int = 0, objective: str = "joint"
+    tmp_path: Path, seed: int = 0, objective: str = "parameters"
 ) -> tuple[InfoGainSelector, Any]:
     """An info-gain selector over a dual filter with the analytical model, initialised on a
     90 x 90 mm box at (0, 0.45)."""
