@@ -53,11 +53,15 @@ def gaussian_kl(mean_p: Tensor, cov_p: Tensor, mean_q: Tensor, cov_q: Tensor) ->
     shift = torch.linalg.solve_triangular(
         factor_q, (mean_q - mean_p).unsqueeze(-1), upper=False
     ).squeeze(-1)
-    log_det_q = 2.0 * factor_q.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    log_det_p = 2.0 * factor_p.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     trace = whitened.square().sum((-2, -1))
     n = mean_p.shape[-1]
-    return 0.5 * (trace + shift.square().sum(-1) - n + log_det_q - log_det_p)
+    log_det_ratio = _log_det(factor_q) - _log_det(factor_p)
+    return 0.5 * (trace + shift.square().sum(-1) - n + log_det_ratio)
+
+
+def _log_det(factor: Tensor) -> Tensor:
+    """ln det of a covariance from its lower Cholesky factor [..., d, d] -> [...]."""
+    return 2.0 * factor.diagonal(dim1=-2, dim2=-1).log().sum(-1)
 
 
 def parameter_information(
@@ -75,13 +79,11 @@ def parameter_information(
     innovation = cov[..., observed, :][..., observed] + torch.diag_embed(noise_var)
     gain = torch.linalg.solve(innovation, cross.transpose(-2, -1)).transpose(-2, -1)
     posterior = params - gain @ cross.transpose(-2, -1)
-    log_det = 2.0 * cholesky_safe(params).diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    log_det_post = 2.0 * cholesky_safe(posterior).diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    return 0.5 * (log_det - log_det_post)
+    return 0.5 * (_log_det(cholesky_safe(params)) - _log_det(cholesky_safe(posterior)))
 
 
 class InfoGainSelector(Component):
-    """Picks the candidate whose predicted belief diverges most from the current one."""
+    """Picks the candidate with the largest predicted information gain (``objective``)."""
 
     kind = "action_selector"
 
