@@ -23,6 +23,7 @@ from vistac.plugins.filters.active import (
     repeat_key,
     stop_reason,
     trajectories_to_threshold,
+    trajectories_to_threshold_by_type,
     validation_error,
 )
 from vistac.plugins.filters.data import Trajectory, acted_link
@@ -67,6 +68,7 @@ def test_replay_buffer_keeps_the_newest_up_to_its_capacity() -> None:
     unbounded.add([a, b])
     unbounded.add(iter([c]))
     assert unbounded.trajectories == [a, b, c] and unbounded.added == 3
+    assert unbounded.added_by_type == {"homogeneous": 3}
     with pytest.raises(ValueError, match="capacity must be >= 1"):
         ReplayBuffer(capacity=0)
 
@@ -85,6 +87,35 @@ def test_trajectories_to_threshold() -> None:
     assert trajectories_to_threshold(rounds, 0.5) == 4
     assert trajectories_to_threshold(rounds, 0.3) == 6
     assert trajectories_to_threshold(rounds, 0.1) is None
+
+
+def test_trajectories_to_threshold_by_type_counts_that_types_trajectories() -> None:
+    rounds = [
+        {"by_type": {"homogeneous": {"trajectories": 1, "val_error": 0.4},
+                     "articulated": {"trajectories": 1, "val_error": 0.9}}},
+        {"by_type": {"homogeneous": {"trajectories": 3, "val_error": 0.2},
+                     "articulated": {"trajectories": 2, "val_error": 0.45}}},
+        {"by_type": {"homogeneous": {"trajectories": 5, "val_error": 0.3}}},
+    ]  # fmt: skip
+    assert trajectories_to_threshold_by_type(rounds, 0.5) == {"articulated": 2, "homogeneous": 1}
+    assert trajectories_to_threshold_by_type(rounds, 0.25) == {"articulated": None,
+                                                                "homogeneous": 3}  # fmt: skip
+    assert trajectories_to_threshold_by_type([{"val_error": 1.0}], 0.5) == {}
+
+
+def test_summary_names_what_each_object_type_needed() -> None:
+    rounds = [{"round": 0, "trajectories": 4, "val_error": 0.6,
+               "by_type": {"homogeneous": {"trajectories": 2, "val_error": 0.4},
+                           "articulated": {"trajectories": 2, "val_error": 0.8}}}]  # fmt: skip
+    result = {"rounds": rounds, "threshold": 0.5, "trajectories_to_threshold": None,
+              "trajectories_to_threshold_by_type": trajectories_to_threshold_by_type(rounds, 0.5)}
+    lines = active.summary_lines({"selection": "uniform", "push": {"gnn": result}})
+    assert lines == [
+        "gnn push (uniform): validation error 0.6 > 0.5 after 1 rounds, 4 trajectories "
+        "(not reached)",
+        "  articulated: validation error 0.8 after 2 trajectories (not reached)",
+        "  homogeneous: threshold reached after 2 trajectories",
+    ]
 
 
 def test_acted_link_is_the_true_link_nearest_the_tcp_at_contact() -> None:
@@ -267,6 +298,10 @@ def test_active_training_end_to_end(tmp_path: Path) -> None:
     ]  # fmt: skip
     assert all(math.isfinite(r["val_error"]) and r["val_error"] > 0 for r in result["rounds"])
     assert result["stopped"] == "max_rounds" and result["trajectories_to_threshold"] is None
+    for r in result["rounds"]:  # train and validation objects are all homogeneous
+        assert r["by_type"]["homogeneous"]["val_error"] == pytest.approx(r["val_error"])
+    assert [r["by_type"]["homogeneous"]["trajectories"] for r in result["rounds"]] == [1, 2]
+    assert result["trajectories_to_threshold_by_type"] == {"homogeneous": None}
     assert report["data"]["val"]["trajectories"] == 2
     work = out / "active" / "gnn_push"
     config = json.loads((work / "data/round_01/rect1_0/run.json").read_text())["config"]
@@ -281,5 +316,6 @@ def test_active_training_end_to_end(tmp_path: Path) -> None:
     assert _train(out, preset, "--selection", "info_gain", "--threshold", "1e6") == 0
     result = json.loads((out / "train.json").read_text(encoding="utf-8"))["push"]["gnn"]
     assert result["stopped"] == "threshold" and result["trajectories_to_threshold"] == 1
+    assert result["trajectories_to_threshold_by_type"] == {"homogeneous": 1}
     assert len(result["rounds"]) == 1
     assert seed_run.stat().st_mtime_ns == stamp  # the seed collection was reused

@@ -40,6 +40,7 @@ import logging
 import math
 import shutil
 import time
+from collections import Counter
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -149,10 +150,13 @@ class ReplayBuffer:
         self.trajectories: list[Trajectory] = []
         self.added = 0
         """All trajectories ever added (the x axis of Fig. 10)."""
+        self.added_by_type: Counter[str] = Counter()
+        """:attr:`added` per object type."""
 
     def add(self, trajectories: Iterable[Trajectory]) -> None:
         new = list(trajectories)
         self.added += len(new)
+        self.added_by_type.update(t.spec.type for t in new)
         self.trajectories += new
         if self.capacity is not None:
             self.trajectories = self.trajectories[-self.capacity :]
@@ -175,6 +179,20 @@ def trajectories_to_threshold(rounds: Sequence[dict[str, Any]], threshold: float
     """Trajectories collected when the validation error first reached ``threshold`` (None:
     never)."""
     return next((r["trajectories"] for r in rounds if r["val_error"] <= threshold), None)
+
+
+def trajectories_to_threshold_by_type(
+    rounds: Sequence[dict[str, Any]], threshold: float
+) -> dict[str, int | None]:
+    """Per object type: the trajectories of that type collected when the validation error on
+    that type's validation objects first reached ``threshold`` (None: never)."""
+    types = sorted({kind for r in rounds for kind in r.get("by_type", {})})
+    return {
+        kind: trajectories_to_threshold(
+            [r["by_type"][kind] for r in rounds if kind in r.get("by_type", {})], threshold
+        )
+        for kind in types
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -210,11 +228,17 @@ def validation_error(
 
 
 def model_error(
-    name: ModelName, kind: Interaction, work: Path, val: list[Trajectory], config: TrainConfig
+    name: ModelName,
+    kind: Interaction,
+    work: Path,
+    val: list[Trajectory],
+    config: TrainConfig,
+    steps: int | None = None,
 ) -> dict[str, float]:
-    """:func:`validation_error` of the checkpoints in ``work``: one GNN for every link count,
-    one FF per link count (validation windows of a count without an FF are left out)."""
-    windows = stack_equal_length(val, window_steps(val))
+    """:func:`validation_error` of the checkpoints in ``work`` on windows of ``steps`` steps
+    (default :func:`window_steps` of ``val``): one GNN for every link count, one FF per link
+    count (validation windows of a count without an FF are left out)."""
+    windows = stack_equal_length(val, steps or window_steps(val))
     by_links: dict[int, list[Trajectory]] = {}
     for window in windows:
         by_links.setdefault(window.n_links, []).append(window)
@@ -333,9 +357,13 @@ def train_rounds(
             buffer.add(_collect_round(name, kind, index, collector, train_objects, work))
         collect_s = time.perf_counter() - start_s
         errors = train_round(name, kind, index, buffer.trajectories, val, collector, work)
+        by_type = errors.pop("by_type")
+        for kind_of_object, type_errors in by_type.items():
+            type_errors["trajectories"] = buffer.added_by_type[kind_of_object]
         rounds.append({
             "round": index, "trajectories": buffer.added, "buffer": len(buffer), **errors,
-            "collect_time_s": collect_s, "time_s": time.perf_counter() - start_s,
+            "by_type": by_type, "collect_time_s": collect_s,
+            "time_s": time.perf_counter() - start_s,
         })  # fmt: skip
         log.info("%s %s round %d: %d trajectories, validation error %.4g",
                  name, kind, index, buffer.added, errors["val_error"])  # fmt: skip
@@ -343,6 +371,9 @@ def train_rounds(
     return {
         "rounds": rounds, "stopped": stopped, "threshold": active.threshold,
         "trajectories_to_threshold": trajectories_to_threshold(rounds, active.threshold),
+        "trajectories_to_threshold_by_type": trajectories_to_threshold_by_type(
+            rounds, active.threshold
+        ),
         "checkpoints": str(work),
     }  # fmt: skip
 
@@ -355,9 +386,11 @@ def train_round(
     val: list[Trajectory],
     collector: Collector,
     work: Path,
-) -> dict[str, float]:
+) -> dict[str, Any]:
     """Train on the buffer (from the checkpoints in ``work`` after round 0) and score the
-    model: :func:`model_error` plus the epochs run."""
+    model: :func:`model_error` on all validation objects, ``by_type`` the same per object type
+    (types the model cannot predict, an FF without that link count, left out), and the epochs
+    run."""
     config = collector.config
     epochs = collector.active.epochs_per_round
     round_config = config.model_copy(
@@ -365,7 +398,16 @@ def train_round(
     )
     data = {"train": buffer, "val": val}
     trained = train_interaction(kind, data, round_config, work, warm_start=index > 0)
-    return model_error(name, kind, work, val, config) | {"epochs": _epochs(trained[name])}
+    steps = window_steps(val)
+    by_type: dict[str, dict[str, float]] = {}
+    for object_type in sorted({t.spec.type for t in val}):
+        subset = [t for t in val if t.spec.type == object_type]
+        try:
+            by_type[object_type] = model_error(name, kind, work, subset, config, steps)
+        except DataError as error:
+            log.warning("no %s validation error on %s objects: %s", name, object_type, error)
+    errors = model_error(name, kind, work, val, config, steps)
+    return errors | {"by_type": by_type, "epochs": _epochs(trained[name])}
 
 
 def _epochs(report: dict[str, Any]) -> int:
@@ -508,6 +550,21 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
                 lines.append(f"{label}: validation error {last['val_error']:.4g} > "
                              f"{result['threshold']:g} after {len(result['rounds'])} rounds, "
                              f"{last['trajectories']} trajectories (not reached)")  # fmt: skip
+            lines += _type_lines(result)
+    return lines
+
+
+def _type_lines(result: dict[str, Any]) -> list[str]:
+    """Per object type: the trajectories of that type it needed, or its last error."""
+    lines = []
+    last = result["rounds"][-1].get("by_type", {})
+    for object_type, needed in result.get("trajectories_to_threshold_by_type", {}).items():
+        if needed is not None:
+            lines.append(f"  {object_type}: threshold reached after {needed} trajectories")
+        elif object_type in last:
+            errors = last[object_type]
+            lines.append(f"  {object_type}: validation error {errors['val_error']:.4g} after "
+                         f"{errors['trajectories']} trajectories (not reached)")  # fmt: skip
     return lines
 
 
@@ -525,6 +582,11 @@ def plot_rounds(report: dict[str, Any], path: Path) -> None:
             rounds = result["rounds"]
             axes.plot([r["trajectories"] for r in rounds], [r["val_error"] for r in rounds],
                       marker="o", label=f"{name} {kind}")  # fmt: skip
+            for object_type in result.get("trajectories_to_threshold_by_type", {}):
+                points = [(r["trajectories"], r["by_type"][object_type]["val_error"])
+                          for r in rounds if object_type in r.get("by_type", {})]  # fmt: skip
+                axes.plot(*zip(*points, strict=True), linestyle=":", linewidth=1,
+                          label=f"{name} {kind} {object_type}")  # fmt: skip
             threshold = result["threshold"]
     if threshold is not None:
         axes.axhline(threshold, color="k", linestyle="--", linewidth=1, label="threshold")
