@@ -303,7 +303,7 @@ def test_active_training_end_to_end(tmp_path: Path) -> None:
     assert [r["by_type"]["homogeneous"]["trajectories"] for r in result["rounds"]] == [1, 2]
     assert result["trajectories_to_threshold_by_type"] == {"homogeneous": None}
     assert report["data"]["val"]["trajectories"] == 2
-    work = out / "active" / "gnn_push"
+    work = out / "active" / "info_gain" / "gnn_push"
     config = json.loads((work / "data/round_01/rect1_0/run.json").read_text())["config"]
     assert config["components"]["planner"]["plugin"] == "actions.info_gain"
     assert Path(config["components"]["model"]["with"]["checkpoint"]) == work / "gnn_push.pt"
@@ -319,3 +319,38 @@ def test_active_training_end_to_end(tmp_path: Path) -> None:
     assert result["trajectories_to_threshold_by_type"] == {"homogeneous": 1}
     assert len(result["rounds"]) == 1
     assert seed_run.stat().st_mtime_ns == stamp  # the seed collection was reused
+
+    assert _train(out, preset, "--selection", "random", "--threshold", "1e6") == 0
+    assert [r["selection"] for r in active.selection_reports(out)] == ["info_gain", "random"]
+    assert (work / "gnn_push.pt").is_file()  # another selection keeps its own weights
+    assert (out / "active/random/gnn_push/gnn_push.pt").is_file()
+
+
+def test_changed_data_settings_drop_every_selections_results(tmp_path: Path) -> None:
+    kept = tmp_path / "active/uniform/gnn_push/gnn_push.pt"
+    kept.parent.mkdir(parents=True)
+    kept.write_bytes(b"weights")
+    active._prepare(tmp_path, {"seed": 0})
+    active._prepare(tmp_path, {"seed": 0})
+    assert kept.is_file()
+    active._prepare(tmp_path, {"seed": 1})
+    assert not kept.exists()
+    assert json.loads((tmp_path / "active/data/settings.json").read_text()) == {"seed": 1}
+
+
+def test_fig10_curves_per_selection_and_object_type(tmp_path: Path) -> None:
+    def report(selection: str, error: float) -> dict[str, object]:
+        rounds = [{"trajectories": 6, "val_error": error,
+                   "by_type": {"homogeneous": {"trajectories": 2, "val_error": error / 2}}}]
+        return {"selection": selection, "active": {"threshold": 0.5},
+                "push": {"gnn": {"rounds": rounds}}}  # fmt: skip
+
+    reports = [report("info_gain", 1.0), report("random", 3.0)]
+    assert active._curves(reports) == {
+        ("all", "info_gain gnn push"): [(6, 1.0)],
+        ("homogeneous", "info_gain gnn push"): [(2, 0.5)],
+        ("all", "random gnn push"): [(6, 3.0)],
+        ("homogeneous", "random gnn push"): [(2, 1.5)],
+    }
+    active.plot_rounds(reports, tmp_path / "fig10.png")
+    assert (tmp_path / "fig10.png").stat().st_size > 0

@@ -26,11 +26,15 @@ one fixed data set:
    included, with a warning.
 
 ``trajectories_to_threshold`` is the size of everything collected of that interaction (seed
-included) when the validation error first reached the threshold: the bars of Fig. 10. Each
-model and interaction keeps its own buffer, weights and rounds; the final weights are copied
-into the output folder under the names ``vistac train`` uses (the observation-noise net of
-the first model), so ``vistac eval --checkpoints DIR`` reads them. Finished seed, validation,
-uniform and random collection runs are reused when the data settings are unchanged.
+included) when the validation error first reached the threshold: the bars of Fig. 10; its
+``_by_type`` form counts one object type's trajectories against that type's validation error.
+Each selection, model and interaction keeps its own buffer, weights and rounds in
+``active/<selection>/<model>_<interaction>/``; the final weights are copied into the output
+folder under the names ``vistac train`` uses (the observation-noise net of the first model),
+so ``vistac eval --checkpoints DIR`` reads them. Finished seed, validation, uniform and random
+collection runs are reused when the data settings are unchanged, so the three selections run
+into one folder one after the other train on the same seed and validation data, and
+``active_training.png`` compares them.
 """
 
 from __future__ import annotations
@@ -343,7 +347,7 @@ def train_rounds(
 ) -> dict[str, Any]:
     """Active iterative training of one model on one interaction; its rounds and result."""
     config, active = collector.config, collector.active
-    work = out_dir / "active" / f"{name}_{kind}"
+    work = _work_dir(out_dir, active.selection, name, kind)
     shutil.rmtree(work, ignore_errors=True)  # round 0 starts from fresh weights
     torch.manual_seed(config.seed)
     buffer = ReplayBuffer(active.buffer_size)
@@ -433,7 +437,7 @@ def _collect_round(
         folder = work / "data" / f"round_{index:02d}"
         model = (name, kind, work)
     else:  # the data do not depend on the model: shared by all models
-        folder = work.parent / "data" / selection / f"round_{index:02d}"
+        folder = work.parents[1] / "data" / selection / f"round_{index:02d}"
     seed = collector.config.seed + 1 + index
     count = collector.active.per_round
     new = collector.run(objects, folder, selection, count, seed, model)
@@ -451,14 +455,19 @@ def _data_stamp(skill: Path, config: TrainConfig, active: ActiveConfig) -> dict[
     }  # fmt: skip
 
 
+def _work_dir(out_dir: Path, selection: Selection, name: ModelName, kind: Interaction) -> Path:
+    """Where one selection keeps a model's rounds, checkpoints and (info gain) data."""
+    return out_dir / "active" / selection / f"{name}_{kind}"
+
+
 def _prepare(out_dir: Path, stamp: dict[str, Any]) -> None:
-    """Drop the shared collections of earlier runs with other data settings."""
+    """Drop the collections and results of earlier runs with other data settings."""
     data = out_dir / "active" / "data"
     path = data / "settings.json"
     stamp_json = json.loads(json.dumps(stamp))
     if path.is_file() and json.loads(path.read_text(encoding="utf-8")) != stamp_json:
         log.info("data settings changed: collecting again in %s", data)
-        shutil.rmtree(data)
+        shutil.rmtree(out_dir / "active")
     data.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(stamp_json, indent=2), encoding="utf-8")
 
@@ -484,7 +493,9 @@ def train_active(
     skill: Path, out_dir: Path, config: TrainConfig, active: ActiveConfig
 ) -> dict[str, Any]:
     """Active iterative training of every model and interaction of the preset; writes the
-    final checkpoints, ``train.json`` and ``active_training.png`` to ``out_dir``."""
+    final checkpoints and ``train.json`` to ``out_dir`` (the report also to
+    ``active/<selection>/train.json``) and ``active_training.png``, which compares every
+    selection trained in ``out_dir`` on the same data settings."""
     start_s = time.perf_counter()
     collector = Collector(skill, config, active)
     kinds = training_kinds(collector.skill_data, config, skill)
@@ -509,18 +520,31 @@ def train_active(
             name: train_rounds(name, kind, seed_data, val_kind, collector, files["train"], out_dir)
             for name in config.models
         }
-    _publish(out_dir, kinds, config.models)
+    _publish(out_dir, active.selection, kinds, config.models)
     report["time_s"] = time.perf_counter() - start_s
-    (out_dir / "train.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
-    plot_rounds(report, out_dir / "active_training.png")
+    text = json.dumps(report, indent=2)
+    (out_dir / "train.json").write_text(text, encoding="utf-8")
+    (out_dir / "active" / active.selection / "train.json").write_text(text, encoding="utf-8")
+    plot_rounds(selection_reports(out_dir), out_dir / "active_training.png")
     return report
 
 
-def _publish(out_dir: Path, kinds: Sequence[Interaction], models: Sequence[ModelName]) -> None:
+def selection_reports(out_dir: Path) -> list[dict[str, Any]]:
+    """The reports of every selection trained in ``out_dir`` (the latest run of each)."""
+    paths = sorted((out_dir / "active").glob("*/train.json"))
+    return [json.loads(path.read_text(encoding="utf-8")) for path in paths]
+
+
+def _publish(
+    out_dir: Path,
+    selection: Selection,
+    kinds: Sequence[Interaction],
+    models: Sequence[ModelName],
+) -> None:
     """Copy each model's final weights to ``out_dir`` (and the first model's noise net)."""
     for position, name in enumerate(models):
         for kind in kinds:
-            work = out_dir / "active" / f"{name}_{kind}"
+            work = _work_dir(out_dir, selection, name, kind)
             patterns = [f"{name}_{kind}.pt*", f"ff*/{name}_{kind}.pt*"]
             patterns += [f"obs_noise_{kind}.pt*"] if position == 0 else []
             for pattern in patterns:
@@ -568,33 +592,48 @@ def _type_lines(result: dict[str, Any]) -> list[str]:
     return lines
 
 
-def plot_rounds(report: dict[str, Any], path: Path) -> None:
-    """Validation error vs trajectories collected, one line per model and interaction."""
+def plot_rounds(reports: Sequence[dict[str, Any]], path: Path) -> None:
+    """Validation error vs trajectories collected (Fig. 10): one panel for all validation
+    objects and one per object type, one line per selection, model and interaction."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, axes = plt.subplots(figsize=(5, 3.5))
-    threshold = None
-    for kind in ("push", "pull"):
-        for name, result in (report.get(kind) or {}).items():
-            rounds = result["rounds"]
-            axes.plot([r["trajectories"] for r in rounds], [r["val_error"] for r in rounds],
-                      marker="o", label=f"{name} {kind}")  # fmt: skip
-            for object_type in result.get("trajectories_to_threshold_by_type", {}):
-                points = [(r["trajectories"], r["by_type"][object_type]["val_error"])
-                          for r in rounds if object_type in r.get("by_type", {})]  # fmt: skip
-                axes.plot(*zip(*points, strict=True), linestyle=":", linewidth=1,
-                          label=f"{name} {kind} {object_type}")  # fmt: skip
-            threshold = result["threshold"]
-    if threshold is not None:
-        axes.axhline(threshold, color="k", linestyle="--", linewidth=1, label="threshold")
-    axes.set_xlabel("trajectories collected")
-    axes.set_ylabel("validation error")
-    axes.set_title(f"active training ({report['selection']})")
-    axes.grid(alpha=0.3)
-    axes.legend()
+    curves = _curves(reports)
+    panels = sorted({panel for panel, _ in curves}, key=lambda p: (p != "all", p))
+    figure, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.5), squeeze=False)
+    for axis, panel in zip(axes[0], panels, strict=True):
+        for (where, label), points in curves.items():
+            if where == panel:
+                axis.plot(*zip(*points, strict=True), marker="o", label=label)
+        thresholds = {report["active"]["threshold"] for report in reports}
+        for threshold in thresholds:
+            axis.axhline(threshold, color="k", linestyle="--", linewidth=1)
+        axis.set_xlabel("trajectories collected" + ("" if panel == "all" else f" ({panel})"))
+        axis.set_ylabel("validation error")
+        axis.set_title(f"{panel} validation objects")
+        axis.grid(alpha=0.3)
+        axis.legend(fontsize="small")
     figure.tight_layout()
     figure.savefig(path, dpi=100)
     plt.close(figure)
+
+
+def _curves(reports: Sequence[dict[str, Any]]) -> dict[tuple[str, str], list[tuple[int, float]]]:
+    """(panel, label) -> [(trajectories, validation error)] per round; panel ``all`` or an
+    object type, whose x is that type's trajectories."""
+    curves: dict[tuple[str, str], list[tuple[int, float]]] = {}
+    for report in reports:
+        for kind in ("push", "pull"):
+            for name, result in (report.get(kind) or {}).items():
+                label = f"{report['selection']} {name} {kind}"
+                for r in result["rounds"]:
+                    curves.setdefault(("all", label), []).append(
+                        (r["trajectories"], r["val_error"])
+                    )
+                    for object_type, errors in r.get("by_type", {}).items():
+                        curves.setdefault((object_type, label), []).append(
+                            (errors["trajectories"], errors["val_error"])
+                        )
+    return curves
