@@ -362,8 +362,8 @@ def train_rounds(
         collect_s = time.perf_counter() - start_s
         errors = train_round(name, kind, index, buffer.trajectories, val, collector, work)
         by_type = errors.pop("by_type")
-        for kind_of_object, type_errors in by_type.items():
-            type_errors["trajectories"] = buffer.added_by_type[kind_of_object]
+        for object_type, type_errors in by_type.items():
+            type_errors["trajectories"] = buffer.added_by_type[object_type]
         rounds.append({
             "round": index, "trajectories": buffer.added, "buffer": len(buffer), **errors,
             "by_type": by_type, "collect_time_s": collect_s,
