@@ -13,7 +13,12 @@ from conftest import run_vistac
 from vistac.errors import ConfigError
 from vistac.objects import load_object
 from vistac.plugins.filters.component import DualFilterComponent, nearest_link, relative_poses
-from vistac.plugins.filters.data import link_geometry, unwrapped_twist
+from vistac.plugins.filters.data import (
+    central_twist,
+    link_geometry,
+    load_trajectories,
+    unwrap_theta,
+)
 from vistac.plugins.filters.dual import Belief
 from vistac.plugins.filters.state import StateLayout
 from vistac.plugins.filters.train import (
@@ -33,13 +38,43 @@ ROOT = Path(__file__).resolve().parents[1]
 SKILLS = ROOT / "skills"
 
 
-def test_twist_by_central_differences_unwraps_the_angle() -> None:
-    dt_s = 0.1
-    t = np.arange(6) * dt_s
-    theta = np.angle(np.exp(1j * (np.pi - 0.05 + 0.5 * t)))  # wraps from +pi to -pi
-    poses = np.stack([0.02 * t, -0.01 * t, theta], axis=1)[:, None, :]
-    twist = unwrapped_twist(poses, dt_s)
+def _wrapping_poses(dt_s: float, steps: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Poses [T, 1, 3] of a link turning at 0.5 rad/s whose reported theta wraps from +pi to
+    -pi, and the continuous theta [T]."""
+    t = np.arange(steps) * dt_s
+    continuous = np.pi - 0.05 + 0.5 * t
+    theta = np.angle(np.exp(1j * continuous))
+    assert theta.min() < 0 < theta.max()
+    return np.stack([0.02 * t, -0.01 * t, theta], axis=1)[:, None, :], continuous
+
+
+def test_twist_by_central_differences_of_the_unwrapped_angle() -> None:
+    poses, continuous = _wrapping_poses(0.1)
+    unwrapped = unwrap_theta(poses)
+    np.testing.assert_allclose(unwrapped[:, 0, 2], continuous, atol=1e-9)
+    np.testing.assert_array_equal(unwrapped[..., :2], poses[..., :2])
+    twist = central_twist(unwrapped, 0.1)
     np.testing.assert_allclose(twist[:, 0], np.tile([0.02, -0.01, 0.5], (6, 1)), atol=1e-9)
+
+
+def test_a_loaded_episode_turning_past_pi_has_a_continuous_angle(tmp_path: Path) -> None:
+    """Else the pose error of training and validation is 2 pi where theta wraps."""
+    dt_s, steps = 1 / 15, 6
+    poses, continuous = _wrapping_poses(dt_s, steps)
+    spec = load_object(SKILLS / "objects" / "rect1.yaml")
+    folder = tmp_path / "run" / "episodes" / "0000"
+    folder.mkdir(parents=True)
+    meta = {"ground_truth": {"object": spec.model_dump(mode="json"),
+                             "parameters": {"m_0": 0.8, "f_0": 0.3, "com_x_0": 0.0,
+                                            "com_y_0": 0.0}},
+            "action": {"kind": "push", "pd_rad": 0.0, "link": 0}}  # fmt: skip
+    (folder / "meta.json").write_text(json.dumps(meta), encoding="utf-8")
+    np.savez(folder / "data.npz", time_s=np.arange(steps) * dt_s, object_pose=poses,
+             arm_pose=np.zeros((steps, 6)), arm_twist=np.zeros((steps, 6)),
+             tactile_force_n=np.zeros((steps, 2, 2)))  # fmt: skip
+    (trajectory,) = load_trajectories([tmp_path / "run"])
+    np.testing.assert_allclose(trajectory.poses[:, 0, 2], continuous, atol=1e-9)
+    np.testing.assert_allclose(trajectory.twists[:, 0, 2], 0.5, atol=1e-6)
 
 
 def test_link_geometry_of_a_two_link_object() -> None:

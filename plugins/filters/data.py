@@ -45,9 +45,10 @@ _PAD_HALF_WIDTH_M = 0.012
 class Trajectory:
     """One recorded push or pull at the control rate (T steps, L links).
 
-    poses: [T, L, 3] true (x, y, theta); twists: [T, L, 3] (vx, vy, omega); tcp: [T, 6];
-    force_n: [T, 2] total force on the fingers (world x, y); depth_m: [T, H, W] or None with
-    camera_pose [T, 4, 4] and intrinsics; parameters: true values by belief entry name.
+    poses: [T, L, 3] true (x, y, theta), theta continuous along time; twists: [T, L, 3] (vx,
+    vy, omega); tcp: [T, 6]; force_n: [T, 2] total force on the fingers (world x, y); depth_m:
+    [T, H, W] or None with camera_pose [T, 4, 4] and intrinsics; parameters: true values by
+    belief entry name.
     """
 
     source: str
@@ -85,13 +86,19 @@ class Trajectory:
         )  # fmt: skip
 
 
-def unwrapped_twist(poses: FloatArray, dt_s: float) -> FloatArray:
-    """Central-difference velocities [T, L, 3] of poses [T, L, 3] (theta unwrapped)."""
-    unwrapped = poses.copy()
-    unwrapped[..., 2] = np.unwrap(poses[..., 2], axis=0)
+def unwrap_theta(poses: FloatArray) -> FloatArray:
+    """Poses [T, L, 3] with theta unwrapped along time (a copy): continuous across +-pi, so
+    differences of poses are the motion (the simulator reports theta in (-pi, pi])."""
+    unwrapped = np.array(poses, dtype=float)
+    unwrapped[..., 2] = np.unwrap(unwrapped[..., 2], axis=0)
+    return unwrapped
+
+
+def central_twist(poses: FloatArray, dt_s: float) -> FloatArray:
+    """Central-difference velocities [T, L, 3] of continuous poses [T, L, 3]."""
     if len(poses) < 2:
         return np.zeros_like(poses)
-    return np.gradient(unwrapped, dt_s, axis=0)
+    return np.gradient(poses, dt_s, axis=0)
 
 
 def _episode(folder: Path) -> Trajectory | None:
@@ -105,7 +112,7 @@ def _episode(folder: Path) -> Trajectory | None:
         return None
     time_s = arrays["time_s"]
     dt_s = float(np.median(np.diff(time_s)))
-    poses = arrays["object_pose"]
+    poses = unwrap_theta(arrays["object_pose"])
     arm_pose, arm_twist = arrays["arm_pose"], arrays["arm_twist"]
     intrinsics = None
     if "depth_intrinsics" in arrays:
@@ -121,7 +128,7 @@ def _episode(folder: Path) -> Trajectory | None:
         link=int(action.get("link", 0)),
         dt_s=dt_s,
         poses=poses,
-        twists=unwrapped_twist(poses, dt_s),
+        twists=central_twist(poses, dt_s),
         tcp=np.column_stack([arm_pose[:, [0, 1, 3]], arm_twist[:, [0, 1, 3]]]),
         force_n=arrays["tactile_force_n"].sum(axis=1),
         depth_m=arrays.get("depth_m"),
