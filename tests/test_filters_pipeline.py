@@ -57,12 +57,11 @@ def test_twist_by_central_differences_of_the_unwrapped_angle() -> None:
     np.testing.assert_allclose(twist[:, 0], np.tile([0.02, -0.01, 0.5], (6, 1)), atol=1e-9)
 
 
-def test_a_loaded_episode_turning_past_pi_has_a_continuous_angle(tmp_path: Path) -> None:
-    """Else the pose error of training and validation is 2 pi where theta wraps."""
-    dt_s, steps = 1 / 15, 6
-    poses, continuous = _wrapping_poses(dt_s, steps)
+def _write_episode(run: Path, poses: np.ndarray, dt_s: float) -> None:
+    """A recorded push of rect1 with the link poses [T, 1, 3] in ``run``/episodes/0000."""
+    steps = len(poses)
     spec = load_object(SKILLS / "objects" / "rect1.yaml")
-    folder = tmp_path / "run" / "episodes" / "0000"
+    folder = run / "episodes" / "0000"
     folder.mkdir(parents=True)
     meta = {"ground_truth": {"object": spec.model_dump(mode="json"),
                              "parameters": {"m_0": 0.8, "f_0": 0.3, "com_x_0": 0.0,
@@ -72,9 +71,28 @@ def test_a_loaded_episode_turning_past_pi_has_a_continuous_angle(tmp_path: Path)
     np.savez(folder / "data.npz", time_s=np.arange(steps) * dt_s, object_pose=poses,
              arm_pose=np.zeros((steps, 6)), arm_twist=np.zeros((steps, 6)),
              tactile_force_n=np.zeros((steps, 2, 2)))  # fmt: skip
+
+
+def test_a_loaded_episode_turning_past_pi_has_a_continuous_angle(tmp_path: Path) -> None:
+    """Else the pose error of training and validation is 2 pi where theta wraps."""
+    dt_s = 1 / 15
+    poses, continuous = _wrapping_poses(dt_s)
+    _write_episode(tmp_path / "run", poses, dt_s)
     (trajectory,) = load_trajectories([tmp_path / "run"])
     np.testing.assert_allclose(trajectory.poses[:, 0, 2], continuous, atol=1e-9)
     np.testing.assert_allclose(trajectory.twists[:, 0, 2], 0.5, atol=1e-6)
+
+
+def test_an_episode_whose_object_tipped_over_is_left_out(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A link lying on its side has an ill-defined yaw that jumps by radians from one step to
+    the next (recorded so in simulation): no planar model can learn that."""
+    poses, _ = _wrapping_poses(1 / 15)
+    poses[3:, 0, 2] = [-1.39, 2.24, -3.11]
+    _write_episode(tmp_path / "run", poses, 1 / 15)
+    assert load_trajectories([tmp_path / "run"]) == []
+    assert "object tipped over" in caplog.text
 
 
 def test_link_geometry_of_a_two_link_object() -> None:

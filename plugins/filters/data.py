@@ -35,6 +35,9 @@ log = logging.getLogger(__name__)
 
 CLOUD_POINTS = 2000
 """Points of the object cloud the depth projector moves with the links."""
+MAX_TURN_RATE_RADPS = 6.0
+"""A link turning faster than this between two recorded steps has left planar motion (tipped
+over: its yaw is then ill-defined and jumps); :func:`load_trajectories` leaves it out."""
 MISS_MARGIN_M = 0.008
 """How far a missed push's TCP stays from the object (:func:`missed_push`)."""
 _PAD_HALF_WIDTH_M = 0.012
@@ -113,6 +116,12 @@ def _episode(folder: Path) -> Trajectory | None:
     time_s = arrays["time_s"]
     dt_s = float(np.median(np.diff(time_s)))
     poses = unwrap_theta(arrays["object_pose"])
+    turn_rate_radps = np.abs(np.diff(poses[..., 2], axis=0)).max(initial=0.0) / dt_s
+    if turn_rate_radps > MAX_TURN_RATE_RADPS:
+        log.warning("left out %s: a link turned at %.0f rad/s between two steps (over %g: the "
+                    "object tipped over or was flung)", folder, turn_rate_radps,
+                    MAX_TURN_RATE_RADPS)  # fmt: skip
+        return None
     arm_pose, arm_twist = arrays["arm_pose"], arrays["arm_twist"]
     intrinsics = None
     if "depth_intrinsics" in arrays:
@@ -160,7 +169,9 @@ def load_trajectories(roots: list[Path], kind: str | None = None) -> list[Trajec
     """Every recorded episode under the run folders ``roots`` (of one interaction ``kind``
     when given), its ``link`` in the true link numbering (:func:`acted_link`: a recorded
     action names a link of the fitted shape, or link 0 for ``actions.outline``, while
-    training builds the graph from the true links). DataError when a folder holds none."""
+    training builds the graph from the true links). Episodes under 3 steps and those whose
+    object tipped over (:data:`MAX_TURN_RATE_RADPS`) are left out. DataError when a folder
+    holds no episode folders."""
     trajectories: list[Trajectory] = []
     for root in roots:
         folders = sorted(p for p in (root / "episodes").glob("[0-9]*") if p.is_dir())
