@@ -228,6 +228,16 @@ def cmd_objects_generate(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    existed = args.out.exists()
+    try:
+        return _train(args)
+    except BaseException:
+        if not existed and args.out.is_dir() and not any(args.out.iterdir()):
+            args.out.rmdir()  # nothing written: leave no empty folder behind
+        raise
+
+
+def _train(args: argparse.Namespace) -> int:
     from vistac.plugins.filters.train import load_preset, train
 
     if not args.skill.is_file():

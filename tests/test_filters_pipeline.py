@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import run_vistac
+from vistac.cli import main
 from vistac.errors import ConfigError
 from vistac.objects import load_object
 from vistac.plugins.filters.component import DualFilterComponent, nearest_link, relative_poses
@@ -93,6 +94,10 @@ def test_an_episode_whose_object_tipped_over_is_left_out(
     _write_episode(tmp_path / "run", poses, 1 / 15)
     assert load_trajectories([tmp_path / "run"]) == []
     assert "object tipped over" in caplog.text
+    out = tmp_path / "out"
+    code = main(["-q", "train", str(SKILLS / "collect_pushes.yaml"), "--preset", "tiny",
+                 "--data", str(tmp_path / "run"), "--out", str(out)])  # fmt: skip
+    assert code != 0 and not out.exists()  # nothing to train on, and no empty folder left
 
 
 def test_link_geometry_of_a_two_link_object() -> None:
