@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -14,6 +16,7 @@ from emulators.ur_controller import URControllerProcess
 from vistac.errors import HardwareError, SafetyError
 from vistac.pluginmanager import Plugins
 from vistac.plugins.hardware.deadline import DeadlineExceededError, call_with_deadline
+from vistac.plugins.hardware.ur_rtde import arm as ur_arm
 from vistac.plugins.hardware.ur_rtde.frames import arm_pose, tcp_pose
 from vistac.testing import build_components, check_component
 
@@ -134,18 +137,65 @@ def test_dropped_connection_is_detected_fast_and_nothing_blocks(
         arm.close()
 
 
+class FakeInterface:
+    """An RTDE interface that records disconnects."""
+
+    def __init__(self, connected: bool) -> None:
+        self.connected, self.disconnects = connected, 0
+
+    def isConnected(self) -> bool:  # noqa: N802 (ur_rtde's name)
+        return self.connected
+
+    def disconnect(self) -> None:
+        self.disconnects += 1
+
+
+def test_a_connection_closed_already_is_not_disconnected_again() -> None:
+    # ur_rtde's own thread closes a dropped connection; a second disconnect crashed it
+    open_interface, closed_interface = FakeInterface(True), FakeInterface(False)
+    for interface in (open_interface, closed_interface):
+        ur_arm._disconnect(interface)
+    assert (open_interface.disconnects, closed_interface.disconnects) == (1, 0)
+
+
+def test_closing_under_a_blocked_command_disconnects_nothing(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    # disconnecting either interface under a blocked moveL crashed ur_rtde
+    monkeypatch.setattr(ur_arm, "_DISCONNECT_TIMEOUT_S", 0.05)
+    interfaces = [FakeInterface(True), FakeInterface(True)]
+    arm = SimpleNamespace(_lock=threading.Lock(), config=SimpleNamespace(host="127.0.0.9"))
+    for blocked, disconnects in ((True, 0), (False, 1)):
+        arm._control, arm._receive = interfaces
+        if blocked:
+            arm._lock.acquire()  # a command still running
+        ur_arm.URArm._abandon(arm)  # type: ignore[arg-type]
+        assert [i.disconnects for i in interfaces] == [disconnects] * 2
+        assert arm._control is None and arm._receive is None
+        assert ("still blocked" in caplog.text) == blocked
+        if blocked:
+            arm._lock.release()
+            caplog.clear()
+
+
 def test_silent_controller_times_out_a_blocking_move(
     emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
 ) -> None:
     arm = make_arm(plugins, tmp_path, emulator.host, max_data_age_s=1.0, move_timeout_margin_s=0.3)
     try:
-        emulator.silent(True)  # moveL would wait for the controller's answer for minutes
+        emulator.silent(True)  # moveL waits for an answer (ur_rtde gives up after about 4 s)
         started = time.monotonic()
         with pytest.raises(HardwareError):
             arm.move_to(np.array([0.005, 0.45, 0.15, 0.0]))
         assert time.monotonic() - started < 1.5
         with pytest.raises(HardwareError, match="not connected"):
             arm.command_velocity(np.zeros(4))
+        # ur_rtde's own timeout of a moveL on a silent controller (about 4 s) sometimes
+        # crashes the process: let this one return before it
+        emulator.silent(False)
+        assert wait_for(
+            lambda: not any(t.name.startswith("deadline:moveL") for t in threading.enumerate())
+        )
     finally:
         arm.close()
 

@@ -146,14 +146,24 @@ class URArm(Component):
 
     def _abandon(self) -> None:
         """Disconnect the current interfaces, each with a deadline, while no command runs on
-        them (a stuck command's lock is waited for at most ``_DISCONNECT_TIMEOUT_S``)."""
+        them. A command still blocked after ``_DISCONNECT_TIMEOUT_S`` leaves both connected
+        (``_keep_alive``) and the controller's watchdog stops the arm: disconnecting either
+        interface under a blocked ``moveL`` made ur_rtde crash the process."""
         locked = self._lock.acquire(timeout=_DISCONNECT_TIMEOUT_S)
         try:
-            old = (self._control, self._receive)
+            old = [i for i in (self._control, self._receive) if i is not None]
             self._control = self._receive = None
+            if old and not locked:
+                log.warning(
+                    "UR arm at %s: a command is still blocked; its RTDE interfaces are left "
+                    "connected (the controller's watchdog stops the arm)",
+                    self.config.host,
+                )
             for interface in old:
-                if interface is not None:
+                if locked:
                     _disconnect(interface)
+                else:
+                    _keep_alive(interface)
         finally:
             if locked:
                 self._lock.release()
@@ -227,8 +237,9 @@ class URArm(Component):
 
     def _limit_to_workspace(self, velocity_mps: FloatArray, position_m: FloatArray) -> FloatArray:
         """Refuse outward motion at the boundary; limit components that would cross it."""
-        reason = leaving_workspace(position_m, velocity_mps, self._low, self._high,
-                                   _BOUNDARY_TOLERANCE_M)
+        reason = leaving_workspace(
+            position_m, velocity_mps, self._low, self._high, _BOUNDARY_TOLERANCE_M
+        )
         if reason is not None:
             self.stop()
             raise SafetyError(f"arm motion refused: it would leave the workspace ({reason})")
@@ -356,13 +367,22 @@ class URArm(Component):
 
 
 def _disconnect(interface: Any) -> None:
-    """Disconnect within ``_DISCONNECT_TIMEOUT_S``, then keep the interface alive for the rest
-    of the process: its C++ destructor joins the interface's threads, which hangs on one stuck
-    in a call, aborts the process at exit, and once crashed the process right after a dropped
-    connection was re-opened. An arm reconnects rarely, so the few kept interfaces cost
-    little."""
+    """Disconnect within ``_DISCONNECT_TIMEOUT_S`` unless the connection is closed already
+    (ur_rtde's own thread closes a dropped one, and disconnecting it again crashed the
+    process), then ``_keep_alive`` the interface."""
     try:
-        call_with_deadline(interface.disconnect, _DISCONNECT_TIMEOUT_S, "RTDE disconnect")
+        if call_with_deadline(interface.isConnected, _DISCONNECT_TIMEOUT_S, "RTDE isConnected"):
+            call_with_deadline(interface.disconnect, _DISCONNECT_TIMEOUT_S, "RTDE disconnect")
+        else:
+            log.debug("%s: connection closed already", type(interface).__name__)
     except HardwareError as exc:
         log.warning("%s; leaving the stuck RTDE interface behind", exc)
+    _keep_alive(interface)
+
+
+def _keep_alive(interface: Any) -> None:
+    """Keep an abandoned interface alive for the rest of the process: its C++ destructor joins
+    the interface's threads, which hangs on one stuck in a call, aborts the process at exit,
+    and once crashed the process right after a dropped connection was re-opened. An arm
+    reconnects rarely, so the few kept interfaces cost little."""
     ctypes.pythonapi.Py_IncRef(ctypes.py_object(interface))
