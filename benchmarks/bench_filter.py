@@ -87,7 +87,7 @@ def time_dual_step_s(repeats: int) -> tuple[float, float]:
             {"m": {"plugin": "filters.gnn", "with": {"hidden": 64}}}, Path(tmp)
         ).component("m")
     observation_model = ProjectionObservationModel(layout, projector, ObsNoiseNet())
-    dual = DualFilter(layout, model, observation_model, 100)
+    dual = DualFilter(layout, model, observation_model, 100, push_load_only=True)  # as skills
     generator = torch.Generator().manual_seed(0)
     cpu_s: list[float] = []
 

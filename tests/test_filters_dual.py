@@ -23,6 +23,7 @@ from vistac.plugins.filters.dual import (
     liu_west,
     marginal_inverse_var,
     marginal_log_likelihood,
+    on_load_ridge,
     paired_fit_noise,
     parameter_fit,
     project_feasible,
@@ -363,6 +364,58 @@ def test_an_observation_of_the_pose_alone_leaves_the_parameter_belief_about_as_i
     assert bool((std_ratio > 0.4).all()), std_ratio
     shift = (belief.mean[6:] - prior.mean[6:]) / prior.cov.diagonal()[6:].sqrt()
     assert bool((shift.abs() < 1.2).all()), shift
+
+
+def test_on_load_ridge_keeps_each_load_at_the_mean_ratio_in_pushes_only() -> None:
+    layout = StateLayout(2)
+    generator = torch.Generator().manual_seed(4)
+    states = torch.rand(2, 50, layout.size, generator=generator, dtype=DTYPE) + 0.1
+    reference = torch.rand(2, layout.size, generator=generator, dtype=DTYPE) + 0.1
+    push = torch.tensor([True, False])
+    moved = on_load_ridge(states, layout, reference, push)
+    before, after = layout.link_parameters(states)[0], layout.link_parameters(moved)[0]
+    mean = layout.link_parameters(reference)[0]
+    torch.testing.assert_close(after[..., 0] * after[..., 1], before[..., 0] * before[..., 1])
+    torch.testing.assert_close(
+        after[..., 0] / after[..., 1], (mean[:, 0] / mean[:, 1]).expand(50, 2)
+    )
+    torch.testing.assert_close(after[..., 2:], before[..., 2:], rtol=0, atol=0)
+    torch.testing.assert_close(moved[1], states[1], rtol=0, atol=0)  # the pull
+    pose_and_joints = [*range(layout.n_pose), layout.size - 1]
+    torch.testing.assert_close(moved[..., pose_and_joints], states[..., pose_and_joints])
+
+
+class MassOnlyForce(LinearProcess):
+    """A model that tells m from f apart: the force is 2 m, whatever f is (and the motion
+    does not depend on the parameters)."""
+
+    def __init__(self) -> None:
+        super().__init__(torch.zeros(3, 4, dtype=DTYPE))
+
+    def predict(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
+        prediction = super().predict(states, inputs, dt_s)
+        force_n = torch.stack([2.0 * states[..., 6], torch.zeros_like(states[..., 6])], -1)
+        return replace(prediction, force_n=force_n)
+
+
+@pytest.mark.parametrize("load_only", [False, True])
+def test_push_load_only_turns_what_a_model_tells_of_m_apart_into_the_load(
+    load_only: bool,
+) -> None:
+    """Fed a force of 2.4 N, a mass-only model moves m alone; seeing the points at the mean's
+    ratio m / f, it can only move the load, so m and f rise together (the pull stays m-only)."""
+    observation = as_tensor([0.0, 0.0, 0.0, 2.4, 0.0])
+    for pull, f_moves in ((0.0, load_only), (1.0, False)):
+        process = MassOnlyForce()
+        dual = DualFilter(LAYOUT, process, LinearObservation(), 100, push_load_only=load_only)
+        inputs = replace(make_inputs(), is_pull=torch.tensor(pull, dtype=DTYPE))
+        generator, belief = torch.Generator().manual_seed(1), prior_belief()
+        for _ in range(20):
+            belief = dual.step(belief, inputs, DT_S, observation, generator)
+        assert float(belief.mean[6]) > PRIOR_MEAN[6] + 0.1
+        assert bool(belief.mean[7] > PRIOR_MEAN[7] + 0.15) is f_moves
+        if not f_moves:
+            assert abs(float(belief.mean[7]) - PRIOR_MEAN[7]) < 0.05
 
 
 def test_projection_lands_on_the_feasible_set() -> None:

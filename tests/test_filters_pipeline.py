@@ -216,6 +216,9 @@ def test_the_end_to_end_epochs_filter_with_a_skills_evidence_and_bounds(tmp_path
     assert (dual.liu_west_delta, dual.min_ess_fraction) == (
         skill.liu_west_delta, skill.min_ess_fraction
     )
+    assert dual.push_load_only is skill.push_load_only is True
+    off = DualFilterComponent.Config(push_load_only=False)
+    assert not off.dual_filter(StateLayout(1), model, observation, None).push_load_only
 
 
 def test_filters_dual_is_a_filter_component(tmp_path: Path) -> None:

@@ -292,6 +292,12 @@ class DualFilterComponent(Component):
             "depth image's errors (the fitted shape's, the model's turn) persist longer than "
             "the force error it was measured from; 2 was chosen on the validation objects",
         )
+        push_load_only: bool = Field(
+            True, description="a push shows each link's friction load m f, not m and f apart "
+            "(quasi-static): the process model sees the sigma points' m and f at the belief "
+            "mean's ratio m / f, so the belief does not wander along m f = const; false for "
+            "pushes fast enough that inertia shows",
+        )
         between_episodes_std_m: float = Field(
             0.002, ge=0, description="pose std added between interactions (m, and rad / 10)"
         )
@@ -321,6 +327,7 @@ class DualFilterComponent(Component):
                 pose_std_floor=self.pose_std_floor,
                 evidence_scale=self.evidence_scale(measured_steps),
                 twist_bound=(self.max_link_speed_mps, self.max_link_rate_radps),
+                push_load_only=self.push_load_only,
             )  # fmt: skip
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
@@ -435,7 +442,7 @@ class DualFilterComponent(Component):
         # Prediction only: the observation model is never called.
         filter_ = DualFilter(
             self.layout, _LookAheadModel(self.model), cast(ObservationModel, None),
-            sigma_points or self.config.sigma_points,
+            sigma_points or self.config.sigma_points, push_load_only=self.config.push_load_only,
         )  # fmt: skip
         generator = torch.Generator().manual_seed(self.ctx.seed)
         mean = start.mean.expand(batch, -1)

@@ -244,6 +244,27 @@ def sample_sigma_points(belief: Belief, count: int, generator: torch.Generator) 
     return sigma_points_from_noise(belief, _standard_normal(shape, generator, mean.device))
 
 
+def on_load_ridge(states: Tensor, layout: StateLayout, reference: Tensor, push: Tensor) -> Tensor:
+    """Copy of states [..., C, n] (m, f > 0) where, in the push rows, each link's mass and
+    friction are moved along its friction load ``m f`` (kept) to the ratio ``m / f`` of
+    reference [..., n] (the belief's mean). push [...] is true for a push.
+
+    A quasi-static push shows a link's load, not how it splits into m and f: fed the moved
+    points, a process model cannot tell points apart along ``m f = const``, so whatever it
+    learned of m and f apart (from the training's spread of both) cannot make the belief
+    wander along that curve.
+    """
+    params = layout.link_parameters(states)
+    load = params[..., 0] * params[..., 1]  # [..., C, L]
+    mean = layout.link_parameters(reference).clamp_min(POSITIVE_FLOOR)
+    ratio = (mean[..., 0] / mean[..., 1]).unsqueeze(-2)  # [..., 1, L]
+    moved = torch.stack([(load * ratio).sqrt(), (load / ratio).sqrt()], -1)
+    mass_friction = torch.where(push[..., None, None, None], moved, params[..., :2])
+    links = torch.cat([mass_friction, params[..., 2:]], -1).flatten(-2)
+    joints = layout.joint_friction(states)
+    return torch.cat([states[..., layout.pose_slice], links, joints], -1)
+
+
 def feasible(states: Tensor, layout: StateLayout, link_size_m: Tensor) -> Tensor:
     """Physical constraints per point: states [..., C, n], link_size_m [..., L, 2] -> [..., C].
 
@@ -778,6 +799,8 @@ class DualFilter:
     ``twist_bound`` (m/s, rad/s, or None): the most a link can move; predicted points beyond
     it are brought back (``bound_twist``), so that a learned model fed its own
     out-of-distribution velocities cannot run away (the camera sees positions, not speeds).
+    ``push_load_only``: in a push, the process model sees each point's links on the curve
+    ``m f = const`` through it at the belief mean's ratio ``m / f`` (``on_load_ridge``).
     """
 
     def __init__(
@@ -794,6 +817,7 @@ class DualFilter:
         pose_std_floor: Sequence[float] | None = (0.006, 0.006, 0.06, 0.0, 0.0, 0.0),
         evidence_scale: float = 1.0,
         twist_bound: tuple[float, float] | None = None,
+        push_load_only: bool = False,
     ) -> None:
         if sigma_points < 2:
             raise ValueError(f"sigma_points must be >= 2, got {sigma_points}")
@@ -826,6 +850,7 @@ class DualFilter:
         if twist_bound is not None and min(twist_bound) <= 0:
             raise ValueError(f"twist_bound: expected (m/s, rad/s) > 0, got {twist_bound}")
         self.twist_bound = twist_bound
+        self.push_load_only = push_load_only
         self.last_log_likelihood: Tensor | None = None
         """After ``update``: [..., 2] eq. 37 per modality (see ``modality_log_likelihoods``)."""
 
@@ -870,6 +895,9 @@ class DualFilter:
         belief.check_finite(self.layout.names)
         sigma = _points(belief, state_white)
         model_states = project_feasible(sigma, self.layout, inputs.link_size_m)
+        if self.push_load_only:
+            push = inputs.is_pull.expand(belief.mean.shape[:-1]) < 0.5
+            model_states = on_load_ridge(model_states, self.layout, belief.mean, push)
         prediction = self.process_model.predict(model_states, inputs, dt_s)
         check_prediction(prediction, self.layout)
         process_var = prediction.process_var
