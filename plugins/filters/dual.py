@@ -474,6 +474,7 @@ def marginal_log_likelihood(
     mean_residual: Tensor,
     inverse_var: Tensor,
     fit_noise: FitNoise | None = None,
+    kept_entries: int = 0,
 ) -> Tensor:
     """Log likelihood [..., C] of each point's parameters, marginal over the points' pose
     scatter: ``N(z; fitted_i, R + s)`` with ``fitted_i`` the fit's value at the point's
@@ -488,17 +489,36 @@ def marginal_log_likelihood(
     parameters wander and collapse even where only the pose shows (their std to 0 within 200
     steps when the image depends on the pose alone). With ``fit_noise`` (``iid_fit_noise``,
     ``paired_fit_noise``) it is taken out (``_fit_noise_removed``); without, the plain
-    formula."""
+    formula. The last ``kept_entries`` (the tactile ones) are added after that, whole: the
+    correction is the noise of thousands of pixels, and taken from their sum it erased the two
+    forces' evidence too (a light homogeneous object: the score set to 0 in half the steps)."""
     deviation, gram, coefficients = fit
     weighted = inverse_var * mean_residual
-    score = coefficients @ weighted.unsqueeze(-1)  # [..., p, 1]
-    information = (coefficients * inverse_var.unsqueeze(-2)) @ coefficients.mT  # [..., p, p]
+    split = coefficients.shape[-1] - (0 if fit_noise is None else kept_entries)
+    score, information = _score_and_information(
+        coefficients[..., :split], weighted[..., :split], inverse_var[..., :split]
+    )
     if fit_noise is not None:
         score, information = _fit_noise_removed(gram, score, information, fit_noise)
+        kept = _score_and_information(
+            coefficients[..., split:], weighted[..., split:], inverse_var[..., split:]
+        )
+        score, information = score + kept[0], information + kept[1]
     linear = deviation @ score  # [..., C, 1]
     squares = ((deviation @ information) * deviation).sum(-1)
     constant = (weighted * mean_residual).sum(-1, keepdim=True)
     return -0.5 * (constant + 2.0 * linear[..., 0] + squares)
+
+
+def _score_and_information(
+    coefficients: Tensor, weighted: Tensor, inverse_var: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Score ``sum_k B_k r_k / v_k`` [..., p, 1] and information ``sum_k B_k B_k' / v_k``
+    [..., p, p] of the slopes coefficients [..., p, k], weighted = ``r / v`` [..., k] and
+    inverse_var = ``1 / v`` [..., k]."""
+    score = coefficients @ weighted.unsqueeze(-1)
+    information = (coefficients * inverse_var.unsqueeze(-2)) @ coefficients.mT
+    return score, information
 
 
 def _fit_noise_removed(
@@ -998,7 +1018,9 @@ class DualFilter:
         modality_sums = weighted_squared_sums(squared, modality_weights)
         self.last_log_likelihood = log_mean_likelihood(modality_sums)
         if self.marginal_parameter_likelihood:
-            log_likelihood = marginal_log_likelihood(fit, mean_residual, inverse_var, fit_noise)
+            log_likelihood = marginal_log_likelihood(
+                fit, mean_residual, inverse_var, fit_noise, n_tactile
+            )
         else:
             sums = weighted_squared_sums(squared, noise_var.reciprocal().unsqueeze(-2))
             log_likelihood = -0.5 * sums[..., 0]
