@@ -33,8 +33,10 @@ from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput, StateL
 from vistac.plugins.filters.train import (
     disturb_twist,
     load_preset,
+    one_step_force_loss,
     predicted_forces,
     rollout_errors,
+    rollout_loss,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -181,6 +183,19 @@ def test_predicted_forces_are_one_step_ahead_of_each_true_state() -> None:
     forces = predicted_forces(_TcpForceModel(), window)
     expected = [[1.0, 0.0], [1.0, 0.5], [2.0, 0.6], [3.0, 0.7]]  # step 0: the measured force
     torch.testing.assert_close(forces, torch.tensor(expected, dtype=DTYPE))
+
+
+def test_the_force_one_step_ahead_of_the_truth_adds_its_squared_error() -> None:
+    window = _trajectory("a", steps=4)
+    window.tcp[:, 0] = [0.1, 0.2, 0.3, 0.4]
+    window.poses[:, 0, 1] = [0.5, 0.6, 0.7, 0.8]
+    # one step ahead: (1, 0.5), (2, 0.6), (3, 0.7) against the measured (1, 0)
+    expected = (0.0 + 0.25 + 1.0 + 0.36 + 4.0 + 0.49) / 6
+    model = _TcpForceModel()
+    assert float(one_step_force_loss(model, [window])) == pytest.approx(expected)
+    plain = float(rollout_loss(model, [window], rollout_steps=3))
+    weighted = float(rollout_loss(model, [window], rollout_steps=3, truth_force_weight=2.0))
+    assert weighted - plain == pytest.approx(2.0 * expected)
 
 
 def test_validation_error_by_hand() -> None:

@@ -98,6 +98,12 @@ class TrainConfig(BaseModel):
         description="noise on the twist each training rollout starts from, in the nets' "
         "speed scales (see rollout_errors): 0 lets a net carry the twist on and ignore the CoM",
     )
+    truth_force_weight: float = Field(
+        default=0.0,
+        ge=0.0,
+        description="weight of the force error one step ahead of each true state (what the "
+        "filter's tactile update expects near the truth), next to the rollouts' forces",
+    )
     epochs: int = Field(default=30, gt=0)
     noise_epochs: int = Field(default=5, ge=0)
     filter_epochs: int = Field(default=1, ge=0)
@@ -280,16 +286,21 @@ def rollout_loss(
     rollout_steps: int,
     twist_noise: float = 0.0,
     generator: torch.Generator | None = None,
+    truth_force_weight: float = 0.0,
 ) -> Tensor:
     """Open-loop rollout loss over a batch of equal-length windows of one link count (see
-    :func:`rollout_errors` for ``twist_noise``)."""
+    :func:`rollout_errors` for ``twist_noise``), plus ``truth_force_weight`` times
+    ``one_step_force_loss``."""
     losses = [
         gaussian_nll(error, var) + error.square().mean() + force_error.square().mean()
         for error, var, force_error in rollout_errors(
             model, windows, rollout_steps, twist_noise, generator
         )
     ]
-    return torch.stack(losses).mean()
+    loss = torch.stack(losses).mean()
+    if truth_force_weight > 0.0:
+        loss = loss + truth_force_weight * one_step_force_loss(model, windows)
+    return loss
 
 
 def _projector(window: Trajectory, rng: np.random.Generator, splat_px: int = 1) -> DepthProjector:
@@ -313,19 +324,34 @@ def observations(window: Trajectory, projector: DepthProjector) -> Tensor:
     )
 
 
-def predicted_forces(model: Any, window: Trajectory) -> Tensor:
-    """The process model's finger forces [T, 2] one step ahead of the window's true states
-    (at step 0, the measured force): the tactile expectation of eq. 28."""
+def one_step_forces(model: Any, window: Trajectory) -> Tensor:
+    """The process model's finger forces [T - 1, 2] one step ahead of the window's true states
+    1 .. T - 1 (all steps in one batch; with gradients when they are enabled)."""
     truth = true_states(window, StateLayout(window.n_links))
     first, steps = process_inputs([window])[0], window.steps - 1
-    inputs = ProcessInput(  # all steps as one batch
+    inputs = ProcessInput(
         torch.as_tensor(window.tcp[:-1], dtype=DTYPE), first.pd_rad.expand(steps),
         first.is_pull.expand(steps), first.link.expand(steps),
         first.link_size_m.expand(steps, -1, -1), first.link_offset.expand(steps, -1, -1),
     )  # fmt: skip
+    return model.predict(truth[:-1, None], inputs, window.dt_s).force_n[:, 0]
+
+
+def predicted_forces(model: Any, window: Trajectory) -> Tensor:
+    """The process model's finger forces [T, 2] one step ahead of the window's true states
+    (at step 0, the measured force): the tactile expectation of eq. 28."""
     with torch.no_grad():
-        ahead = model.predict(truth[:-1, None], inputs, window.dt_s).force_n[:, 0]
+        ahead = one_step_forces(model, window)
     return torch.cat([torch.as_tensor(window.force_n[:1], dtype=DTYPE), ahead])
+
+
+def one_step_force_loss(model: Any, windows: list[Trajectory]) -> Tensor:
+    """Mean squared error (in ``_FORCE_SCALE_N``) of the forces one step ahead of the true
+    states over windows: what the filter expects of a sigma point near the truth."""
+    errors = [
+        one_step_forces(model, w) - torch.as_tensor(w.force_n[1:], dtype=DTYPE) for w in windows
+    ]
+    return (torch.cat(errors) / _FORCE_SCALE_N).square().mean()
 
 
 def correlation_steps(errors: list[Tensor]) -> float:
@@ -623,12 +649,14 @@ def _train_model(
 
     def train() -> Iterator[Tensor]:
         for batch in batches(windows["train"] + windows.get("missed", []), config.batch_size, rng):
-            yield rollout_loss(model, batch, config.rollout_steps, config.twist_noise, generator)
+            yield rollout_loss(model, batch, config.rollout_steps, config.twist_noise, generator,
+                               config.truth_force_weight)
 
     def val() -> float:
         """Twist disturbances drawn from the same seed every epoch (the batches are shuffled)."""
         fixed = torch.Generator().manual_seed(config.seed + 1)
-        losses = [float(rollout_loss(model, b, config.rollout_steps, config.twist_noise, fixed))
+        losses = [float(rollout_loss(model, b, config.rollout_steps, config.twist_noise, fixed,
+                                     config.truth_force_weight))
                   for b in batches(windows["val"], config.batch_size, rng)]  # fmt: skip
         return float(np.mean(losses)) if losses else math.inf
 
