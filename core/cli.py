@@ -406,7 +406,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument(
         "--data",
         type=Path,
-        action="append",
+        nargs="+",
+        action="extend",
         help="train on recorded data instead of collecting: run folders, or the data/ folder "
         "of an earlier training (its train/val split kept)",
     )

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import run_vistac
-from vistac.cli import main
+from vistac.cli import build_parser, main
 from vistac.errors import ConfigError
 from vistac.objects import load_object
 from vistac.plugins.filters.component import DualFilterComponent, nearest_link, relative_poses
@@ -320,6 +320,14 @@ def test_training_data_without_validation_runs_is_refused_before_any_output(
                         "--data", str(tmp_path / "data"))  # fmt: skip
     assert result.returncode == 2 and "no validation runs in" in result.stderr
     assert not out.exists()
+
+
+def test_data_takes_several_folders_after_one_flag_or_one_per_flag() -> None:
+    parser = build_parser()
+    common = ["train", "skill.yaml", "--out", "out"]
+    one_flag = parser.parse_args([*common, "--data", "a", "b"])
+    two_flags = parser.parse_args([*common, "--data", "a", "--data", "b"])
+    assert one_flag.data == two_flags.data == [Path("a"), Path("b")]
 
 
 def test_tiny_training_gives_checkpoints_the_explore_skill_can_use(tmp_path: Path) -> None:
