@@ -196,6 +196,10 @@ def test_the_force_one_step_ahead_of_the_truth_adds_its_squared_error() -> None:
     plain = float(rollout_loss(model, [window], rollout_steps=3))
     weighted = float(rollout_loss(model, [window], rollout_steps=3, truth_force_weight=2.0))
     assert weighted - plain == pytest.approx(2.0 * expected)
+    still = _trajectory("b", steps=4)  # one step ahead (0, 0.45) against (1, 0), 3 times
+    assert float(one_step_force_loss(model, [window, still])) == pytest.approx(
+        (6 * expected + 3 * (1.0 + 0.45**2)) / 12
+    )
 
 
 def test_validation_error_by_hand() -> None:

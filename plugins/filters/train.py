@@ -324,34 +324,37 @@ def observations(window: Trajectory, projector: DepthProjector) -> Tensor:
     )
 
 
-def one_step_forces(model: Any, window: Trajectory) -> Tensor:
-    """The process model's finger forces [T - 1, 2] one step ahead of the window's true states
-    1 .. T - 1 (all steps in one batch; with gradients when they are enabled)."""
-    truth = true_states(window, StateLayout(window.n_links))
-    first, steps = process_inputs([window])[0], window.steps - 1
+def one_step_forces(model: Any, windows: list[Trajectory]) -> Tensor:
+    """The process model's finger forces [B, T - 1, 2] one step ahead of the true states
+    1 .. T - 1 of B equal-length windows of one link count (every step of every window in one
+    batch; with gradients when they are enabled)."""
+    layout, steps = StateLayout(windows[0].n_links), windows[0].steps - 1
+    truth = torch.stack([true_states(w, layout)[:-1] for w in windows])  # [B, T - 1, n]
+    first = process_inputs(windows)[0]
+    tcp = torch.as_tensor(np.stack([w.tcp[:-1] for w in windows]), dtype=DTYPE)
     inputs = ProcessInput(
-        torch.as_tensor(window.tcp[:-1], dtype=DTYPE), first.pd_rad.expand(steps),
-        first.is_pull.expand(steps), first.link.expand(steps),
-        first.link_size_m.expand(steps, -1, -1), first.link_offset.expand(steps, -1, -1),
+        tcp.flatten(0, 1), first.pd_rad.repeat_interleave(steps),
+        first.is_pull.repeat_interleave(steps), first.link.repeat_interleave(steps),
+        first.link_size_m.repeat_interleave(steps, 0),
+        first.link_offset.repeat_interleave(steps, 0),
     )  # fmt: skip
-    return model.predict(truth[:-1, None], inputs, window.dt_s).force_n[:, 0]
+    force = model.predict(truth.flatten(0, 1)[:, None], inputs, windows[0].dt_s).force_n
+    return force[:, 0].unflatten(0, (len(windows), steps))
 
 
 def predicted_forces(model: Any, window: Trajectory) -> Tensor:
     """The process model's finger forces [T, 2] one step ahead of the window's true states
     (at step 0, the measured force): the tactile expectation of eq. 28."""
     with torch.no_grad():
-        ahead = one_step_forces(model, window)
+        ahead = one_step_forces(model, [window])[0]
     return torch.cat([torch.as_tensor(window.force_n[:1], dtype=DTYPE), ahead])
 
 
 def one_step_force_loss(model: Any, windows: list[Trajectory]) -> Tensor:
     """Mean squared error (in ``_FORCE_SCALE_N``) of the forces one step ahead of the true
-    states over windows: what the filter expects of a sigma point near the truth."""
-    errors = [
-        one_step_forces(model, w) - torch.as_tensor(w.force_n[1:], dtype=DTYPE) for w in windows
-    ]
-    return (torch.cat(errors) / _FORCE_SCALE_N).square().mean()
+    states of equal-length windows: what the filter expects of a sigma point near the truth."""
+    measured = torch.as_tensor(np.stack([w.force_n[1:] for w in windows]), dtype=DTYPE)
+    return ((one_step_forces(model, windows) - measured) / _FORCE_SCALE_N).square().mean()
 
 
 def correlation_steps(errors: list[Tensor]) -> float:
