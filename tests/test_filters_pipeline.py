@@ -322,6 +322,17 @@ def test_training_data_without_validation_runs_is_refused_before_any_output(
     assert not out.exists()
 
 
+def test_a_missing_data_folder_is_named_before_any_output(tmp_path: Path) -> None:
+    (tmp_path / "data" / "train").mkdir(parents=True)
+    (tmp_path / "data" / "val").mkdir()
+    out = tmp_path / "out"
+    result = run_vistac("train", str(SKILLS / "collect_pushes.yaml"), "--out", str(out),
+                        "--data", str(tmp_path / "nowhere"), str(tmp_path / "data"))  # fmt: skip
+    assert result.returncode == 2
+    assert f"no such folder {tmp_path / 'nowhere'}; check the path" in result.stderr
+    assert not out.exists()
+
+
 def test_data_takes_several_folders_after_one_flag_or_one_per_flag() -> None:
     parser = build_parser()
     common = ["train", "skill.yaml", "--out", "out"]

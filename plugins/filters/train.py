@@ -720,6 +720,9 @@ def recorded_data(data_dirs: list[Path]) -> dict[str, list[Trajectory]]:
     """Train and validation trajectories from ``--data``: the ``data`` folders of earlier
     trainings (their ``train/`` and ``val/`` run folders, the split kept), or run folders
     (the first eighth of their trajectories validates)."""
+    absent = [str(folder) for folder in data_dirs if not folder.is_dir()]
+    if absent:
+        raise ConfigError(f"--data: no such folder {', '.join(absent)}; check the path")
     collections = [folder for folder in data_dirs if (folder / "train").is_dir()]
     if collections and len(collections) < len(data_dirs):
         raise ConfigError(
