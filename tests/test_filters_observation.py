@@ -442,6 +442,25 @@ def test_model_noise_var_and_measured_observation() -> None:
     torch.testing.assert_close(var, model.noise_net.noise_var(observation))
 
 
+def test_tactile_std_grows_with_the_measured_force() -> None:
+    """tactile_std (a, b): std a + b |f| on the two force entries, the pixels' untouched."""
+    model, _ = make_model()
+    scaled = ProjectionObservationModel(
+        model.layout, model.projector, model.noise_net, tactile_std=(0.05, 0.2)
+    )
+    observation = torch.full((3, 4098), 0.6, dtype=DTYPE)
+    observation[:, -2:] = torch.tensor([[0.0, 0.0], [3.0, 4.0], [-0.6, 0.8]], dtype=DTYPE)
+    var = scaled.noise_var(observation)
+    learned = model.noise_var(observation)
+    torch.testing.assert_close(var[:, :-2], learned[:, :-2])
+    std_n = torch.tensor([0.05, 0.05 + 0.2 * 5.0, 0.05 + 0.2 * 1.0], dtype=DTYPE)
+    torch.testing.assert_close(var[:, -2:], std_n.square()[:, None].expand(3, 2))
+    for bad in ((0.0, 0.2), (0.1, -0.1)):
+        with pytest.raises(ValueError, match="tactile_std"):
+            ProjectionObservationModel(model.layout, model.projector, model.noise_net,
+                                       tactile_std=bad)  # fmt: skip
+
+
 def test_model_rejects_mismatched_parts() -> None:
     model, _ = make_model()
     with pytest.raises(ValueError, match="links"):

@@ -33,7 +33,7 @@ from vistac.plugins.filters.train import (
 )
 from vistac.protocols import Filter, Scene
 from vistac.testing import build_components, check_component_class
-from vistac.types import PointCloud, ShapeEstimate, Superquadric
+from vistac.types import CameraIntrinsics, PointCloud, ShapeEstimate, Superquadric
 
 ROOT = Path(__file__).resolve().parents[1]
 SKILLS = ROOT / "skills"
@@ -219,6 +219,24 @@ def test_the_end_to_end_epochs_filter_with_a_skills_evidence_and_bounds(tmp_path
     assert dual.push_load_only is skill.push_load_only is True
     off = DualFilterComponent.Config(push_load_only=False)
     assert not off.dual_filter(StateLayout(1), model, observation, None).push_load_only
+
+
+def test_the_skills_tactile_std_reaches_the_observation_model() -> None:
+    from vistac.plugins.filters.observation import DepthProjector, ObsNoiseNet
+
+    points = np.array([[0.5, 0.0, 0.02], [0.52, 0.01, 0.02]])
+    camera = np.eye(4)
+    camera[:3, 3] = (0.5, 0.0, 0.6)
+    camera[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking straight down
+    projector = DepthProjector(
+        points, np.zeros(2, dtype=np.int64), np.array([[0.5, 0.0, 0.0]]),
+        CameraIntrinsics(320, 240, 300.0, 300.0, 160.0, 120.0), camera,
+    )  # fmt: skip
+    for setting in (None, (0.05, 0.2)):
+        config = DualFilterComponent.Config(tactile_std=setting)
+        model = config.observation_model(StateLayout(1), projector, ObsNoiseNet())
+        assert model.tactile_std == setting
+        assert model.occlusion_margin_m == config.occlusion_margin_m
 
 
 def test_filters_dual_is_a_filter_component(tmp_path: Path) -> None:

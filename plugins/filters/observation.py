@@ -502,9 +502,12 @@ class ProjectionObservationModel:
         noise_net: ObsNoiseNet,
         occlusion_margin_m: float | None = 0.01,
         robot_radius_m: float | None = 0.06,
+        tactile_std: tuple[float, float] | None = None,
     ) -> None:
         """occlusion_margin_m, robot_radius_m: see ``unexplained``; a margin of None keeps
-        every pixel, a radius of None lets any pixel be an occluder."""
+        every pixel, a radius of None lets any pixel be an occluder. tactile_std: (a in N,
+        b) for a tactile std of ``a + b |measured force|`` in place of the noise net's (see
+        ``noise_var``); None keeps the noise net's."""
         if projector.n_links != layout.n_links:
             raise ValueError(
                 f"projector has {projector.n_links} links, layout {layout.n_links}"
@@ -516,6 +519,9 @@ class ProjectionObservationModel:
         self.noise_net = noise_net
         self.occlusion_margin_m = occlusion_margin_m
         self.robot_radius_m = robot_radius_m
+        if tactile_std is not None and (tactile_std[0] <= 0 or tactile_std[1] < 0):
+            raise ValueError(f"tactile_std: expected (a > 0 N, b >= 0), got {tactile_std}")
+        self.tactile_std = tactile_std
 
     @property
     def size(self) -> int:
@@ -546,8 +552,16 @@ class ProjectionObservationModel:
         return observation_vector(depth_m, force_n, self.projector.background_m)
 
     def noise_var(self, observation: Tensor) -> Tensor:
-        """Diagonal of R: [..., H*W + 2] -> [..., H*W + 2]."""
-        return self.noise_net.noise_var(observation)
+        """Diagonal of R: [..., H*W + 2] -> [..., H*W + 2]. With ``tactile_std`` (a, b) the
+        two force entries get the variance ``(a + b |f|)^2`` of the measured force f [..., 2]:
+        a force model's error that grows with the force, where the noise net's is learned."""
+        var = self.noise_net.noise_var(observation)
+        if self.tactile_std is None:
+            return var
+        floor_n, fraction = self.tactile_std
+        force_n = observation[..., -N_FORCE:]
+        std_n = floor_n + fraction * force_n.norm(dim=-1, keepdim=True)
+        return torch.cat([var[..., :-N_FORCE], std_n.square().expand_as(force_n)], -1)
 
     def unexplained(
         self, observation: Tensor, expected: Tensor, tcp_xy_m: Tensor | None = None
