@@ -16,6 +16,7 @@ from vistac.errors import ConfigError, DataError
 from vistac.plugins.actions.affordances import (
     PushPullRule,
     SuperquadricAffordances,
+    in_rectangle,
     inside_link,
     link_outline,
 )
@@ -44,10 +45,22 @@ def _link(scale_m: np.ndarray, xy: tuple[float, float], exponents: float = 0.1) 
     return Superquadric(scale_m, np.array([exponents, exponents]), pose)
 
 
-def _shape(*links: Superquadric) -> ShapeEstimate:
+def _shape(*links: Superquadric, cloud_m: np.ndarray | None = None) -> ShapeEstimate:
+    """The links with, unless ``cloud_m`` [P, 3] is given, a cloud of their top faces."""
     poses = np.array([[link.world_from_sq[0, 3], link.world_from_sq[1, 3], 0.0] for link in links])
-    cloud = PointCloud(np.random.default_rng(0).normal([0.0, 0.45, 0.03], 0.02, (300, 3)))
-    return ShapeEstimate(links, poses, np.zeros((len(links), 14)), cloud)
+    if cloud_m is None:
+        cloud_m = np.concatenate([_top_face(link) for link in links])
+    return ShapeEstimate(links, poses, np.zeros((len(links), 14)), PointCloud(cloud_m))
+
+
+def _top_face(link: Superquadric, step_m: float = 0.004) -> np.ndarray:
+    """Points [P, 3] on a grid of ``step_m`` over the link's top face (its mid-height
+    outline, at its top)."""
+    radius = float(np.max(link.scale_m[:2]))
+    grid = np.arange(-radius, radius + step_m, step_m)
+    xy = np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2) + link.world_from_sq[:2, 3]
+    xy = xy[inside_link(link, xy)]
+    return np.column_stack([xy, np.full(len(xy), 2.0 * link.world_from_sq[2, 3])])
 
 
 def _scene(*links: Superquadric) -> Scene:
@@ -285,6 +298,35 @@ def test_pushes_whose_fingers_would_descend_onto_another_link_are_dropped(
     assert not any(_fingers_hit_box(p, (0.045, 0.45), (0.04, 0.05)) for p in pushes())
     tcp_only = pushes(finger_footprint_m=(0.0, 0.0))
     assert any(_fingers_hit_box(p, (0.045, 0.45), (0.04, 0.05)) for p in tcp_only)
+
+
+def test_in_rectangle_of_a_turned_footprint() -> None:
+    points = np.array([[0.0, 0.0], [0.0, 0.009], [0.0, 0.011], [-0.019, 0.0], [0.021, 0.0]])
+    centre = np.array([1.0, 2.0])
+    inside = in_rectangle(points + centre, centre, math.pi / 2, (0.02, 0.04))
+    assert inside.tolist() == [True, True, False, True, False]  # along y +-1 cm, across +-2 cm
+
+
+def test_pushes_whose_fingers_would_descend_onto_unfitted_points_are_dropped(
+    tmp_path: Path,
+) -> None:
+    """A part of the object the fit missed (a patch beyond the box's +x end, seen in the
+    cloud): pushes whose fingers would descend onto it are dropped, unless the check is off."""
+    link = _link(BOX, (0.0, 0.45))
+    grid = np.stack(np.meshgrid(np.arange(0.152, 0.176, 0.004), np.arange(0.43, 0.47, 0.004)), -1)
+    patch = np.column_stack([grid.reshape(-1, 2), np.full(grid.size // 2, 0.05)])
+    shape = _shape(link, cloud_m=np.concatenate([_top_face(link), patch]))
+
+    def on_patch(push: Push) -> bool:
+        start = push.cp_m - 0.02 * np.array([math.cos(push.pd_rad), math.sin(push.pd_rad)])
+        return int(in_rectangle(patch[:, :2], start, push.pd_rad, (0.03, 0.034)).sum()) > 2
+
+    def pushes(**options: Any) -> list[Push]:
+        sampler = _sampler(tmp_path, samples=400, interactions=["push"], **options)
+        return sampler.sample(Scene(shape.cloud, shape), np.random.default_rng(5))
+
+    assert not any(on_patch(p) for p in pushes())
+    assert any(on_patch(p) for p in pushes(max_cloud_points_under_fingers=None))
 
 
 def test_affordances_need_a_shape(tmp_path: Path) -> None:

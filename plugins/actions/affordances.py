@@ -83,6 +83,17 @@ def finger_footprint(
     return np.asarray(centre_xy + offsets, dtype=np.float64)
 
 
+def in_rectangle(
+    points_xy: FloatArray, centre_xy: FloatArray, heading_rad: float, size_m: tuple[float, float]
+) -> FloatArray:
+    """Whether table-plane points [N, 2] lie in the rectangle of ``size_m`` (along, across
+    ``heading_rad``) centred at ``centre_xy`` [2]: bool [N]."""
+    offset = np.asarray(points_xy, dtype=np.float64) - centre_xy
+    c, s = np.cos(heading_rad), np.sin(heading_rad)
+    along, across = offset @ np.array([c, s]), offset @ np.array([-s, c])
+    return np.asarray((np.abs(along) <= 0.5 * size_m[0]) & (np.abs(across) <= 0.5 * size_m[1]))
+
+
 class SuperquadricAffordances(OutlineSampler):
     """Samples pushes and pulls on the mid-height outlines of the fitted superquadric links.
 
@@ -111,6 +122,13 @@ class SuperquadricAffordances(OutlineSampler):
             0.005, ge=0, description="gap kept between every fitted link and the fingers "
             "where they descend (and a closing finger's path): the fit's error and the corners "
             "a superquadric rounds off",
+        )  # fmt: skip
+        max_cloud_points_under_fingers: int | None = Field(
+            2, ge=0, description="where the fingers descend (grown by finger_clearance_m) "
+            "at most this many points of the observed object cloud may lie, or the push or "
+            "grasp is dropped: a fit can miss a part of the object (a sharp corner, where two "
+            "links meet), and fingers descending onto it are blocked; null: check the fitted "
+            "links only",
         )  # fmt: skip
         gripper_opening_m: float = Field(
             0.15, gt=0, description="distance between the pads of the open gripper (sim "
@@ -148,6 +166,7 @@ class SuperquadricAffordances(OutlineSampler):
         links = self._links(shape)
         outlines = {index: link_outline(shape.links[index]) for index in links}
         object_xy = np.asarray(shape.initial_poses, dtype=np.float64)[:, :2].mean(axis=0)
+        cloud_xy = np.asarray(shape.cloud.points_m, dtype=np.float64)[:, :2]
         actions: list[Action] = []
         for kind, index in zip(
             rng.choice(kinds, size=self.config.samples),
@@ -156,9 +175,9 @@ class SuperquadricAffordances(OutlineSampler):
             outline, _ = outlines[int(index)]
             point, outward = point_on_outline(outline, rng.uniform())
             action = (
-                self._push(shape, int(index), point, outward, rng)
+                self._push(shape, cloud_xy, int(index), point, outward, rng)
                 if kind == "push"
-                else self._pull(shape, outline, int(index), point, outward, rng)
+                else self._pull(shape, cloud_xy, outline, int(index), point, outward, rng)
             )
             if action is not None and self._reachable(action, object_xy):
                 actions.append(action)
@@ -186,28 +205,32 @@ class SuperquadricAffordances(OutlineSampler):
     def _push(
         self,
         shape: ShapeEstimate,
+        cloud_xy: FloatArray,
         index: int,
         point: FloatArray,
         outward: FloatArray,
         rng: np.random.Generator,
     ) -> Push | None:
         """A push at ``point`` [2] along the inward normal plus jitter; None when the
-        fingers would descend onto a link (a corner of a neighbouring link, say)."""
+        fingers would descend onto a link (a corner of a neighbouring link, say) or onto the
+        observed object cloud_xy [P, 2]."""
         jitter = np.radians(rng.uniform(-self.config.jitter_deg, self.config.jitter_deg))
         pd_rad = float(np.arctan2(-outward[1], -outward[0]) + jitter)
         start = point - self.config.approach_clearance_m * np.array(
             [np.cos(pd_rad), np.sin(pd_rad)]
         )
-        footprint = finger_footprint(
-            start, pd_rad, self._with_clearance(*self.config.finger_footprint_m)
-        )
+        size_m = self._with_clearance(*self.config.finger_footprint_m)
+        footprint = finger_footprint(start, pd_rad, size_m)
         if any(inside_link(link, footprint).any() for link in shape.links):
+            return None
+        if self._on_cloud(cloud_xy, start, pd_rad, size_m):
             return None
         return Push(point, pd_rad, self.config.speed_mps, self.config.duration_s, link=index)
 
     def _pull(
         self,
         shape: ShapeEstimate,
+        cloud_xy: FloatArray,
         outline: FloatArray,
         index: int,
         point: FloatArray,
@@ -221,7 +244,7 @@ class SuperquadricAffordances(OutlineSampler):
         midpoint, width_m = chord(outline, point, axis_rad)
         if width_m > self.config.max_grasp_width_m:
             return None
-        if self._grasp_blocked(shape, index, midpoint, axis_rad, width_m):
+        if self._grasp_blocked(shape, cloud_xy, index, midpoint, axis_rad, width_m):
             return None
         pd_rad = self.config.pull_towards_rad + rng.uniform(-1, 1) * self.config.pull_spread_rad
         return Pull(
@@ -234,26 +257,41 @@ class SuperquadricAffordances(OutlineSampler):
         margin_m = 2.0 * self.config.finger_clearance_m
         return along_m + margin_m, across_m + margin_m
 
+    def _on_cloud(
+        self, cloud_xy: FloatArray, centre_xy: FloatArray, heading_rad: float,
+        size_m: tuple[float, float],
+    ) -> bool:  # fmt: skip
+        """Whether more than ``max_cloud_points_under_fingers`` of the object cloud's points
+        cloud_xy [P, 2] lie in a finger's footprint (see ``in_rectangle``)."""
+        most = self.config.max_cloud_points_under_fingers
+        if most is None:
+            return False
+        return int(in_rectangle(cloud_xy, centre_xy, heading_rad, size_m).sum()) > most
+
     def _grasp_blocked(
         self,
         shape: ShapeEstimate,
+        cloud_xy: FloatArray,
         index: int,
         midpoint: FloatArray,
         axis_rad: float,
         width_m: float,
     ) -> bool:
-        """Whether an open finger would descend onto a link, or a closing finger would sweep
-        over a link other than the grasped one ``index`` (and squeeze both): the grasp has
-        its chord of ``width_m`` centred at ``midpoint`` [2] along ``axis_rad``."""
+        """Whether an open finger would descend onto a link or the object cloud_xy [P, 2],
+        or a closing finger would sweep over a link other than the grasped one ``index`` (and
+        squeeze both): the grasp has its chord of ``width_m`` centred at ``midpoint`` [2]
+        along ``axis_rad``."""
         along_m, across_m = self.config.finger_footprint_m
         pad_m = 0.5 * along_m
         open_m = 0.5 * (self.config.gripper_opening_m + pad_m)  # pad centre, open
         contact_m = 0.5 * (width_m + pad_m)  # pad centre, on the link
         axis = np.array([np.cos(axis_rad), np.sin(axis_rad)])
+        pad_size_m = self._with_clearance(pad_m, across_m)
         for side in (-1.0, 1.0):
-            pad = finger_footprint(
-                midpoint + side * open_m * axis, axis_rad, self._with_clearance(pad_m, across_m)
-            )
+            pad_centre = midpoint + side * open_m * axis
+            if self._on_cloud(cloud_xy, pad_centre, axis_rad, pad_size_m):
+                return True
+            pad = finger_footprint(pad_centre, axis_rad, pad_size_m)
             sweep = finger_footprint(
                 midpoint + side * 0.5 * (open_m + contact_m) * axis, axis_rad,
                 self._with_clearance(open_m - contact_m + pad_m, across_m), per_side=9,
