@@ -15,11 +15,11 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, cast
+from typing import Any, cast
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
 from vistac.errors import ConfigError, DataError
 from vistac.plugins.actions.executor import CartesianExecutor
@@ -238,10 +238,6 @@ class _ActionMotion:
         return ProcessInput(tcp=torch.as_tensor(tcp, dtype=DTYPE), **self.fixed)
 
 
-_PositiveN = Annotated[float, Field(gt=0)]
-_NonNegative = Annotated[float, Field(ge=0)]
-
-
 class DualFilterComponent(Component):
     """Implements the ``Filter`` protocol with :class:`DualFilter` (paper 1, III-F)."""
 
@@ -302,7 +298,7 @@ class DualFilterComponent(Component):
             "mean's ratio m / f, so the belief does not wander along m f = const; false for "
             "pushes fast enough that inertia shows",
         )
-        tactile_std: tuple[_PositiveN, _NonNegative] | None = Field(
+        tactile_std: tuple[PositiveFloat, NonNegativeFloat] | None = Field(
             None, description="[a N, b]: the fingertip force's noise std a + b |force| in "
             "place of the noise checkpoint's learned one (about 0.74 N whatever the force, so "
             "a light object's pushes tell little); null: the learned one. [0.05, 0.2] brought "
