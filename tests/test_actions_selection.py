@@ -329,6 +329,16 @@ def test_pushes_whose_fingers_would_descend_onto_unfitted_points_are_dropped(
     assert any(on_patch(p) for p in pushes(max_cloud_points_under_fingers=None))
 
 
+def test_a_sampler_that_drops_every_candidate_says_why(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    sampler = _sampler(tmp_path, samples=16, interactions=["push"], finger_clearance_m=0.2)
+    with caplog.at_level("WARNING"):
+        assert sampler.sample(_scene(_link(ELLIPSE, (0.0, 0.45))), np.random.default_rng(0)) == []
+    assert "all 16 candidates dropped: 16 where the fingers" in caplog.text
+    assert "finger_clearance_m" in caplog.text
+
+
 def test_affordances_need_a_shape(tmp_path: Path) -> None:
     scene = Scene(_shape(_link(BOX, (0.0, 0.45))).cloud)
     with pytest.raises(DataError, match="no shape estimate"):

@@ -88,7 +88,11 @@ class ChooseAction(SkillBehaviour):
         rng = self.run.rng(f"choose_action/{self.run.episode_count}")
         candidates = self.component("sampler").sample(scene, rng)
         if not candidates:
-            raise DataError("choose_action: no reachable push or pull on the observed object")
+            raise DataError(
+                "choose_action: no reachable push or pull on the observed object: the "
+                f"{self.config.sampler!r} component dropped every candidate; check its "
+                "workspace and clearance options (a warning above may say which)"
+            )
         action = self.component("selector").select(candidates, scene, rng)
         self.write("action", action)
         self.run.hook.vistac_action(

@@ -168,6 +168,7 @@ class SuperquadricAffordances(OutlineSampler):
         object_xy = np.asarray(shape.initial_poses, dtype=np.float64)[:, :2].mean(axis=0)
         cloud_xy = np.asarray(shape.cloud.points_m, dtype=np.float64)[:, :2]
         actions: list[Action] = []
+        blocked = 0
         for kind, index in zip(
             rng.choice(kinds, size=self.config.samples),
             rng.choice(links, size=self.config.samples), strict=True,
@@ -179,9 +180,19 @@ class SuperquadricAffordances(OutlineSampler):
                 if kind == "push"
                 else self._pull(shape, cloud_xy, outline, int(index), point, outward, rng)
             )
-            if action is not None and self._reachable(action, object_xy):
+            if action is None:
+                blocked += 1
+            elif self._reachable(action, object_xy):
                 actions.append(action)
         log.debug("%d of %d candidates kept", len(actions), self.config.samples)
+        if not actions:
+            log.warning(
+                "actions.affordances: all %d candidates dropped: %d where the fingers would "
+                "come down on the object or a grasp is too wide (finger_clearance_m, "
+                "max_cloud_points_under_fingers, max_grasp_width_m), %d out of reach "
+                "(workspace_xy_m, object_margin_m, push_towards_rad)",
+                self.config.samples, blocked, self.config.samples - blocked,
+            )  # fmt: skip
         return actions
 
     def _shape(self, scene: Scene) -> ShapeEstimate:
