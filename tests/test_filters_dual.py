@@ -453,6 +453,32 @@ def test_push_load_only_turns_what_a_model_tells_of_m_apart_into_the_load(
             assert abs(float(belief.mean[7]) - PRIOR_MEAN[7]) < 0.05
 
 
+class ContactGatedObservation(LinearObservation):
+    """Marks both forces unexplained while the measured one is under 0.3 N (no contact)."""
+
+    def unexplained(
+        self, observation: Tensor, expected: Tensor, tcp_xy_m: Tensor | None
+    ) -> Tensor:
+        mask = torch.zeros(observation.shape, dtype=torch.bool)
+        mask[..., 3:] = observation[..., 3:].norm(dim=-1, keepdim=True) < 0.3
+        return mask
+
+
+def test_unexplained_forces_leave_the_parameters_alone() -> None:
+    """A measured 0 N (before contact) against a model whose force is 2 m pulls m down; the
+    same step with the forces unexplained leaves m where it was."""
+    observation = as_tensor([0.0, 0.0, 0.0, 0.0, 0.0])
+    for observation_model, falls in ((LinearObservation(), True),
+                                     (ContactGatedObservation(), False)):  # fmt: skip
+        dual = DualFilter(LAYOUT, MassOnlyForce(), observation_model, 100)
+        generator, belief = torch.Generator().manual_seed(1), prior_belief()
+        for _ in range(20):
+            belief = dual.step(belief, make_inputs(), DT_S, observation, generator)
+        assert bool(float(belief.mean[6]) < PRIOR_MEAN[6] - 0.1) is falls
+        if not falls:
+            assert abs(float(belief.mean[6]) - PRIOR_MEAN[6]) < 0.05
+
+
 def test_projection_lands_on_the_feasible_set() -> None:
     layout = StateLayout(2)
     generator = torch.Generator().manual_seed(2)

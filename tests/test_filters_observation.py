@@ -461,6 +461,25 @@ def test_tactile_std_grows_with_the_measured_force() -> None:
                                        tactile_std=bad)  # fmt: skip
 
 
+def test_forces_below_contact_are_unexplained() -> None:
+    """contact_force_n: both force entries are unexplained while the measured force is weaker
+    (no contact: the force says nothing of the parameters), never the pixels by this."""
+    model, _ = make_model()
+    gated = ProjectionObservationModel(
+        model.layout, model.projector, model.noise_net, occlusion_margin_m=None,
+        contact_force_n=0.2,
+    )  # fmt: skip
+    observation = torch.full((3, 4098), 0.6, dtype=DTYPE)
+    observation[:, -2:] = torch.tensor([[0.02, -0.01], [0.12, 0.16], [0.15, 0.15]], dtype=DTYPE)
+    expected = torch.full((3, 5, 4098), 0.6, dtype=DTYPE)
+    mask = gated.unexplained(observation, expected)
+    assert mask[:, -2:].tolist() == [[True, True], [False, False], [False, False]]
+    assert not bool(mask[:, :-2].any())
+    with pytest.raises(ValueError, match="contact_force_n"):
+        ProjectionObservationModel(model.layout, model.projector, model.noise_net,
+                                   contact_force_n=-0.1)  # fmt: skip
+
+
 def test_model_rejects_mismatched_parts() -> None:
     model, _ = make_model()
     with pytest.raises(ValueError, match="links"):

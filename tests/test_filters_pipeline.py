@@ -221,7 +221,7 @@ def test_the_end_to_end_epochs_filter_with_a_skills_evidence_and_bounds(tmp_path
     assert not off.dual_filter(StateLayout(1), model, observation, None).push_load_only
 
 
-def test_the_skills_tactile_std_reaches_the_observation_model() -> None:
+def test_the_skills_tactile_settings_reach_the_observation_model() -> None:
     from vistac.plugins.filters.observation import DepthProjector, ObsNoiseNet
 
     points = np.array([[0.5, 0.0, 0.02], [0.52, 0.01, 0.02]])
@@ -232,10 +232,10 @@ def test_the_skills_tactile_std_reaches_the_observation_model() -> None:
         points, np.zeros(2, dtype=np.int64), np.array([[0.5, 0.0, 0.0]]),
         CameraIntrinsics(320, 240, 300.0, 300.0, 160.0, 120.0), camera,
     )  # fmt: skip
-    for setting in (None, (0.05, 0.2)):
-        config = DualFilterComponent.Config(tactile_std=setting)
+    for setting, contact_n in ((None, None), ((0.05, 0.2), 0.3)):
+        config = DualFilterComponent.Config(tactile_std=setting, contact_force_n=contact_n)
         model = config.observation_model(StateLayout(1), projector, ObsNoiseNet())
-        assert model.tactile_std == setting
+        assert (model.tactile_std, model.contact_force_n) == (setting, contact_n)
         assert model.occlusion_margin_m == config.occlusion_margin_m
 
 

@@ -305,6 +305,13 @@ class DualFilterComponent(Component):
             "the friction load m f of 3 of 4 homogeneous test objects nearer the truth, but "
             "the overall NRMSE rose (README)",
         )
+        contact_force_n: NonNegativeFloat | None = Field(
+            0.2, description="a measured fingertip force weaker than this (N) is no evidence "
+            "on the parameters: without contact it is zero whatever they are, and what the "
+            "points' forces disagree on then is the model's contact onset (the shipped GNN "
+            "predicts about 2 N in the steps before the finger touches); null: every force "
+            "counts",
+        )
         between_episodes_std_m: float = Field(
             0.002, ge=0, description="pose std added between interactions (m, and rad / 10)"
         )
@@ -326,6 +333,7 @@ class DualFilterComponent(Component):
             return ProjectionObservationModel(
                 layout, projector, noise_net, occlusion_margin_m=self.occlusion_margin_m,
                 robot_radius_m=self.robot_radius_m, tactile_std=self.tactile_std,
+                contact_force_n=self.contact_force_n,
             )  # fmt: skip
 
         def dual_filter(

@@ -503,6 +503,7 @@ class ProjectionObservationModel:
         occlusion_margin_m: float | None = 0.01,
         robot_radius_m: float | None = 0.06,
         tactile_std: tuple[float, float] | None = None,
+        contact_force_n: float | None = None,
     ) -> None:
         """occlusion_margin_m, robot_radius_m: see ``unexplained``; a margin of None keeps
         every pixel, a radius of None lets any pixel be an occluder. tactile_std: (a in N,
@@ -522,6 +523,9 @@ class ProjectionObservationModel:
         if tactile_std is not None and (tactile_std[0] <= 0 or tactile_std[1] < 0):
             raise ValueError(f"tactile_std: expected (a > 0 N, b >= 0), got {tactile_std}")
         self.tactile_std = tactile_std
+        if contact_force_n is not None and contact_force_n < 0:
+            raise ValueError(f"contact_force_n: expected >= 0 N, got {contact_force_n}")
+        self.contact_force_n = contact_force_n
 
     @property
     def size(self) -> int:
@@ -572,13 +576,22 @@ class ProjectionObservationModel:
         object or table there. The robot test keeps a belief that has lost the object: the
         object's own pixels, nearer than every rendering then, still pull it back. Without
         a TCP or a radius any nearer pixel is an occluder. observation [..., k], expected
-        [..., C, k] -> bool [..., k] (the tactile entries are never unexplained)."""
+        [..., C, k] -> bool [..., k].
+
+        With ``contact_force_n``, both tactile entries are unexplained while the measured
+        force is weaker than that: without contact the force is zero whatever the parameters,
+        so what the points' forces disagree on then is the model's contact onset, not them."""
         n_depth = self.projector.height_px * self.projector.width_px
         candidates = None
         if tcp_xy_m is not None and self.robot_radius_m is not None and self.occlusion_margin_m:
             candidates = self.projector.robot_pixels(
                 observation[..., :n_depth], tcp_xy_m, self.robot_radius_m, self.occlusion_margin_m
             )
-        return unexplained_entries(
+        mask = unexplained_entries(
             observation, expected, n_depth, self.occlusion_margin_m, candidates
         )
+        if self.contact_force_n is not None:
+            force_n = observation[..., n_depth:]
+            free = force_n.norm(dim=-1, keepdim=True) < self.contact_force_n
+            mask[..., n_depth:] = free.expand_as(force_n)
+        return mask

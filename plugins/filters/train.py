@@ -397,7 +397,7 @@ def filter_loss(
     layout = StateLayout(window.n_links)
     truth = true_states(window, layout)
     projector = _projector(window, rng)
-    obs_model = ProjectionObservationModel(layout, projector, noise_net)
+    obs_model = DualFilterComponent.Config().observation_model(layout, projector, noise_net)
     filter_ = training_filter(layout, model, obs_model, noise_net, config.filter_sigma_points)
     belief = _initial_belief(truth[0], layout, Prior())
     measured = observations(window, projector)
