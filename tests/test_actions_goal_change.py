@@ -12,7 +12,8 @@ import pytest
 import torch
 from simctx import TestContext
 from vistac.behaviours.belief import record_belief
-from vistac.errors import ConfigError
+from vistac.errors import ConfigError, DataError
+from vistac.plugins.actions.affordances import fingers_blocked, inside_link
 from vistac.plugins.actions.change import assess, auroc, window_means
 from vistac.plugins.actions.icem import ICEMController, colored_noise
 from vistac.plugins.filters.component import (
@@ -112,6 +113,41 @@ def test_icem_is_deterministic_under_a_seed_and_reuses_elites(tmp_path: Path) ->
     b = second.plan(scene, goal, np.random.default_rng(3))
     assert np.allclose(a.cp_m, b.cp_m) and a.pd_rad == b.pd_rad
     assert first._shifted is not None and first._shifted.shape == (5, 2, 3)
+
+
+def _box(xy: tuple[float, float]) -> Superquadric:
+    pose = np.eye(4)
+    pose[:3, 3] = [xy[0], xy[1], 0.025]
+    return Superquadric(np.array([0.045, 0.045, 0.025]), np.array([0.1, 0.1]), pose)
+
+
+def test_icem_keeps_the_fingers_off_the_other_links(tmp_path: Path) -> None:
+    """Towards a goal straight ahead, the best push starts right behind link 0; with a second
+    link there, the planned push brings the fingers down clear of it; and where no push is
+    clear the plan fails with a message naming the options."""
+    goal = np.array([0.06, 0.45, 0.0])
+    behind = _box((-0.092, 0.45))  # link 1, 2 mm behind link 0
+    one_link = Scene(PointCloud(np.zeros((1, 3))), _box_shape((0.0, 0.45)))
+    options = {"iterations": 4, "population": 48, "horizon_pushes": 1}
+    alone = _controller(tmp_path, (0.0, 0.45, 0.0), **options)
+    push = alone.plan(one_link, goal, np.random.default_rng(0))
+    heading = np.array([math.cos(push.pd_rad), math.sin(push.pd_rad)])
+    start = push.cp_m - alone.config.approach_clearance_m * heading
+    assert inside_link(behind, start[None])[0]  # where link 1 would be
+    two = _box_shape((0.0, 0.45))
+    two = ShapeEstimate([two.links[0], behind], np.array([[0.0, 0.45, 0.0], [-0.092, 0.45, 0.0]]),
+                        np.zeros((2, 14)), two.cloud)  # fmt: skip
+    controller = _controller(tmp_path, (0.0, 0.45, 0.0), **options)
+    push = controller.plan(Scene(one_link.cloud, two), goal, np.random.default_rng(0))
+    heading = np.array([math.cos(push.pd_rad), math.sin(push.pd_rad)])
+    start = push.cp_m - controller.config.approach_clearance_m * heading
+    size_m = controller.config.finger_footprint_m
+    headings = np.array([push.pd_rad])
+    assert not fingers_blocked(two, np.zeros((0, 2)), start[None], headings, size_m, None)[0]
+    assert controller.last_cost < 0.06  # still nearer the goal than the start
+    wide = _controller(tmp_path, (0.0, 0.45, 0.0), finger_clearance_m=0.05, **options)
+    with pytest.raises(DataError, match="finger_clearance_m"):
+        wide.plan(Scene(one_link.cloud, two), goal, np.random.default_rng(0))
 
 
 def test_icem_rejects_a_bad_goal_and_a_skill_without_a_filter(tmp_path: Path) -> None:

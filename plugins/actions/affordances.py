@@ -40,6 +40,18 @@ stretch the footprint by at most 2 + 1)."""
 Interaction = Literal["push", "pull"]
 
 
+FINGER_FOOTPRINT_FIELD = Field(
+    (0.02, 0.024), description="(along, across the push) size of the closed fingers about the "
+    "TCP: where they descend must be clear of every link",
+)
+CLOUD_POINTS_FIELD = Field(
+    2, ge=0, description="where the fingers descend (grown by finger_clearance_m) at most "
+    "this many points of the observed object cloud may lie, or the push or grasp is dropped: "
+    "a fit can miss a part of the object (a sharp corner, where two links meet), and fingers "
+    "descending onto it are blocked; null: check the fitted links only",
+)
+
+
 def link_outline(link: Superquadric, count: int = OUTLINE_POINTS) -> tuple[FloatArray, FloatArray]:
     """The mid-height cross-section of a superquadric in the world table plane.
 
@@ -94,6 +106,32 @@ def in_rectangle(
     return np.asarray((np.abs(along) <= 0.5 * size_m[0]) & (np.abs(across) <= 0.5 * size_m[1]))
 
 
+def fingers_blocked(
+    shape: ShapeEstimate,
+    cloud_xy: FloatArray,
+    centres_xy: FloatArray,
+    headings_rad: FloatArray,
+    size_m: tuple[float, float],
+    max_cloud_points: int | None,
+) -> FloatArray:
+    """Whether closed fingers of ``size_m`` (along, across the heading) descending at
+    centres_xy [N, 2] with headings_rad [N] would come down on a fitted link of ``shape``,
+    or on more than ``max_cloud_points`` points of the observed object cloud_xy [P, 2]
+    (None: the links only): bool [N]."""
+    footprints = np.stack([finger_footprint(centre, float(heading), size_m)
+                           for centre, heading in zip(centres_xy, headings_rad, strict=True)])
+    flat = footprints.reshape(-1, 2)  # fmt: skip
+    on_link = np.zeros(len(flat), dtype=bool)
+    for link in shape.links:
+        on_link |= inside_link(link, flat)
+    blocked = on_link.reshape(len(footprints), -1).any(axis=1)
+    if max_cloud_points is not None:
+        counts = [int(in_rectangle(cloud_xy, centre, float(heading), size_m).sum())
+                  for centre, heading in zip(centres_xy, headings_rad, strict=True)]  # fmt: skip
+        blocked |= np.asarray(counts) > max_cloud_points
+    return np.asarray(blocked)
+
+
 class SuperquadricAffordances(OutlineSampler):
     """Samples pushes and pulls on the mid-height outlines of the fitted superquadric links.
 
@@ -114,22 +152,13 @@ class SuperquadricAffordances(OutlineSampler):
             0.08, ge=0, description="as in actions.outline (there off by default): pushes "
             "in every direction leave enough candidates to keep the object in reach",
         )  # fmt: skip
-        finger_footprint_m: tuple[NonNegativeFloat, NonNegativeFloat] = Field(
-            (0.02, 0.024), description="(along, across the push) size of the closed fingers "
-            "about the TCP: where they descend must be clear of every link",
-        )  # fmt: skip
+        finger_footprint_m: tuple[NonNegativeFloat, NonNegativeFloat] = FINGER_FOOTPRINT_FIELD
         finger_clearance_m: float = Field(
             0.005, ge=0, description="gap kept between every fitted link and the fingers "
             "where they descend (and a closing finger's path): the fit's error and the corners "
             "a superquadric rounds off",
         )  # fmt: skip
-        max_cloud_points_under_fingers: int | None = Field(
-            2, ge=0, description="where the fingers descend (grown by finger_clearance_m) "
-            "at most this many points of the observed object cloud may lie, or the push or "
-            "grasp is dropped: a fit can miss a part of the object (a sharp corner, where two "
-            "links meet), and fingers descending onto it are blocked; null: check the fitted "
-            "links only",
-        )  # fmt: skip
+        max_cloud_points_under_fingers: int | None = CLOUD_POINTS_FIELD
         gripper_opening_m: float = Field(
             0.15, gt=0, description="distance between the pads of the open gripper (sim "
             "0.15, Robotiq 2F-85 0.085): where the open fingers descend for a grasp, each a "
@@ -231,10 +260,8 @@ class SuperquadricAffordances(OutlineSampler):
             [np.cos(pd_rad), np.sin(pd_rad)]
         )
         size_m = self._with_clearance(*self.config.finger_footprint_m)
-        footprint = finger_footprint(start, pd_rad, size_m)
-        if any(inside_link(link, footprint).any() for link in shape.links):
-            return None
-        if self._on_cloud(cloud_xy, start, pd_rad, size_m):
+        most = self.config.max_cloud_points_under_fingers
+        if fingers_blocked(shape, cloud_xy, start[None], np.array([pd_rad]), size_m, most)[0]:
             return None
         return Push(point, pd_rad, self.config.speed_mps, self.config.duration_s, link=index)
 

@@ -25,10 +25,15 @@ from typing import Any
 
 import numpy as np
 import torch
-from pydantic import Field, model_validator
+from pydantic import Field, NonNegativeFloat, model_validator
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import ConfigError, DataError
-from vistac.plugins.actions.affordances import link_outline
+from vistac.plugins.actions.affordances import (
+    CLOUD_POINTS_FIELD,
+    FINGER_FOOTPRINT_FIELD,
+    fingers_blocked,
+    link_outline,
+)
 from vistac.protocols import Scene
 from vistac.types import Action, FloatArray, Push, ShapeEstimate, Superquadric
 
@@ -91,8 +96,18 @@ class ICEMController(Component):
             0.02, ge=0, description="cost of an angle error, in metres per radian"
         )
         approach_clearance_m: float = Field(
-            0.03, ge=0, description="the gripper starts this far behind the contact point"
+            0.02, ge=0, description="the fingers descend this far behind the contact point "
+            "(the executor's standoff_m + pusher_offset_m): there they must be within the "
+            "arm's workspace and clear of the object",
         )
+        finger_footprint_m: tuple[NonNegativeFloat, NonNegativeFloat] = FINGER_FOOTPRINT_FIELD
+        finger_clearance_m: float = Field(
+            0.0, ge=0, description="gap kept between every fitted link and the fingers where "
+            "they descend (actions.affordances keeps 5 mm, its pushes within 5 deg of the "
+            "normal; a push here may turn max_offset_deg from it, and at 30 deg the closed "
+            "fingers' corner descends 3 mm from a flat face it pushes)",
+        )
+        max_cloud_points_under_fingers: int | None = CLOUD_POINTS_FIELD
 
         @model_validator(mode="after")
         def _bounds(self) -> ICEMController.Config:
@@ -135,8 +150,15 @@ class ICEMController(Component):
         link0 = self.filter.layout.link_pose(self.filter.belief.mean)[0, :3].numpy()
         outline = _OutlineInLink(scene.shape, link0, self._link_outline)
         with torch.inference_mode():  # rollouts only: no autograd bookkeeping at all
-            best, cost = self._optimise(outline, goal, rng)
+            best, cost = self._optimise(outline, goal, rng, self._blocked_check(scene.shape))
         self.last_cost = cost
+        if cost >= _INFEASIBLE_COST / self.config.horizon_pushes:
+            raise DataError(
+                "actions.icem: every planned first push would start out of the arm's reach "
+                "or bring the fingers down on the object (approach_clearance_m, "
+                "finger_clearance_m, max_cloud_points_under_fingers); move the goal or the "
+                "object"
+            )
         first = self._pushes(outline, best[None, 0], None)[0][0]
         log.info(
             "icem: push at (%.3f, %.3f) m along %.0f deg for %.1f s, predicted goal distance "
@@ -151,6 +173,21 @@ class ICEMController(Component):
             self._outline = (link, *link_outline(link, _OUTLINE_POINTS))
         return self._outline[1], self._outline[2]
 
+    def _blocked_check(self, shape: ShapeEstimate) -> Callable[[FloatArray, list[Push]], Any]:
+        """Whether pushes, the fingers descending at starts [N, 2], would come down on the
+        object as the last look saw it: its fitted links or its cloud (bool [N])."""
+        cloud_xy = np.asarray(shape.cloud.points_m, dtype=np.float64)[:, :2]
+        margin_m = 2.0 * self.config.finger_clearance_m
+        along_m, across_m = self.config.finger_footprint_m
+        size_m = (along_m + margin_m, across_m + margin_m)
+
+        def blocked(starts: FloatArray, pushes: list[Push]) -> Any:
+            headings = np.array([push.pd_rad for push in pushes])
+            most = self.config.max_cloud_points_under_fingers
+            return fingers_blocked(shape, cloud_xy, starts, headings, size_m, most)
+
+        return blocked
+
     # -- iCEM -------------------------------------------------------------------------------
 
     def _bounds(self) -> tuple[FloatArray, FloatArray]:
@@ -160,9 +197,14 @@ class ICEMController(Component):
         return low, high
 
     def _optimise(
-        self, outline: _OutlineInLink, goal: FloatArray, rng: np.random.Generator
+        self,
+        outline: _OutlineInLink,
+        goal: FloatArray,
+        rng: np.random.Generator,
+        blocked: Callable[[FloatArray, list[Push]], Any],
     ) -> tuple[FloatArray, float]:
-        """The best push sequence [H, 3] and its cost (m)."""
+        """The best push sequence [H, 3] and its cost (m); ``blocked`` tells which first
+        pushes would bring the fingers down on the object (see ``_costs``)."""
         config = self.config
         low, high = self._bounds()
         horizon = config.horizon_pushes
@@ -181,7 +223,7 @@ class ICEMController(Component):
             if iteration == config.iterations - 1:
                 samples = np.concatenate([samples, mean[None]])
             samples = self._clip(samples, low, high)
-            costs = self._costs(outline, samples, goal)
+            costs = self._costs(outline, samples, goal, blocked)
             order = np.argsort(costs)
             elites = samples[order[: config.elites]]
             if costs[order[0]] < best_cost:
@@ -204,16 +246,26 @@ class ICEMController(Component):
         tail = np.broadcast_to(0.5 * (low + high), (len(elites), 1, 3))
         return np.concatenate([elites[:, 1:], tail], axis=1)
 
-    def _costs(self, outline: _OutlineInLink, samples: FloatArray, goal: FloatArray) -> FloatArray:
+    def _costs(
+        self,
+        outline: _OutlineInLink,
+        samples: FloatArray,
+        goal: FloatArray,
+        blocked: Callable[[FloatArray, list[Push]], Any],
+    ) -> FloatArray:
         """Cost [N] (m) of push sequences [N, H, 3]: the sum over the pushes of the distance
         of the predicted link-0 pose to the goal after each (so the first push, the one
-        carried out, already heads there), plus a penalty for pushes the arm cannot start."""
+        carried out, already heads there), plus a penalty for pushes the arm cannot start
+        and for a first push whose fingers would come down on the object (``blocked``: the
+        later pushes are planned again after the next look)."""
         states: torch.Tensor | None = None
         costs = np.zeros(len(samples))
         low, high = self.workspace_m
         for step in range(samples.shape[1]):
             pushes, starts = self._pushes(outline, samples[:, step], states)
             costs += np.any((starts < low) | (starts > high), axis=1) * _INFEASIBLE_COST
+            if step == 0:
+                costs += blocked(starts, pushes) * _INFEASIBLE_COST
             states = self.filter.predict_states(pushes, self.config.rate_hz, states)
             costs += self._goal_distance(states, goal)
         return costs / samples.shape[1]
