@@ -13,7 +13,7 @@ import torch
 from simctx import TestContext
 from vistac.behaviours.belief import record_belief
 from vistac.errors import ConfigError, DataError
-from vistac.plugins.actions.affordances import fingers_blocked, inside_link
+from vistac.plugins.actions.affordances import fingers_blocked, in_rectangle, inside_link
 from vistac.plugins.actions.change import assess, auroc, window_means
 from vistac.plugins.actions.icem import ICEMController, colored_noise
 from vistac.plugins.filters.component import (
@@ -123,8 +123,9 @@ def _box(xy: tuple[float, float]) -> Superquadric:
 
 def test_icem_keeps_the_fingers_off_the_other_links(tmp_path: Path) -> None:
     """Towards a goal straight ahead, the best push starts right behind link 0; with a second
-    link there, the planned push brings the fingers down clear of it; and where no push is
-    clear the plan fails with a message naming the options."""
+    link there, the planned push brings the fingers down clear of it; clear, too, of a part
+    only the cloud shows (the fit missed it) unless the cloud check is off; and where no push
+    is clear the plan fails with a message naming the options."""
     goal = np.array([0.06, 0.45, 0.0])
     behind = _box((-0.092, 0.45))  # link 1, 2 mm behind link 0
     one_link = Scene(PointCloud(np.zeros((1, 3))), _box_shape((0.0, 0.45)))
@@ -145,6 +146,20 @@ def test_icem_keeps_the_fingers_off_the_other_links(tmp_path: Path) -> None:
     headings = np.array([push.pd_rad])
     assert not fingers_blocked(two, np.zeros((0, 2)), start[None], headings, size_m, None)[0]
     assert controller.last_cost < 0.06  # still nearer the goal than the start
+    # A part the fit missed: cloud points where link 1 would be, no link there.
+    grid = np.stack(np.meshgrid(np.linspace(-0.13, -0.05, 9), np.linspace(0.41, 0.49, 9)), -1)
+    patch = np.column_stack([grid.reshape(-1, 2), np.full(81, 0.05)])
+    fitted = _box_shape((0.0, 0.45))
+    missed = ShapeEstimate(fitted.links, fitted.initial_poses, fitted.uncertainty,
+                           PointCloud(patch))  # fmt: skip
+    for most, on_patch in ((2, False), (None, True)):
+        controller = _controller(tmp_path, (0.0, 0.45, 0.0), max_cloud_points_under_fingers=most,
+                                 **options)  # fmt: skip
+        push = controller.plan(Scene(missed.cloud, missed), goal, np.random.default_rng(0))
+        heading = np.array([math.cos(push.pd_rad), math.sin(push.pd_rad)])
+        start = push.cp_m - controller.config.approach_clearance_m * heading
+        under = in_rectangle(patch[:, :2], start, push.pd_rad, size_m).sum()
+        assert bool(under > 2) is on_patch
     wide = _controller(tmp_path, (0.0, 0.45, 0.0), finger_clearance_m=0.05, **options)
     with pytest.raises(DataError, match="finger_clearance_m"):
         wide.plan(Scene(one_link.cloud, two), goal, np.random.default_rng(0))

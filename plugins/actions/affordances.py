@@ -82,27 +82,32 @@ def inside_link(link: Superquadric, points_xy: FloatArray) -> FloatArray:
 
 
 def finger_footprint(
-    centre_xy: FloatArray, heading_rad: float, size_m: tuple[float, float], per_side: int = 5
+    centre_xy: FloatArray, heading_rad: float | FloatArray, size_m: tuple[float, float],
+    per_side: int = 5,
 ) -> FloatArray:
-    """A grid of points [per_side**2, 2] over the rectangle of ``size_m`` (along, across
-    ``heading_rad``) centred at ``centre_xy`` [2], its edges included."""
+    """A grid of points [..., per_side**2, 2] over the rectangle of ``size_m`` (along,
+    across ``heading_rad`` [...]) centred at ``centre_xy`` [..., 2], its edges included."""
     along, across = np.meshgrid(
         np.linspace(-0.5, 0.5, per_side) * size_m[0], np.linspace(-0.5, 0.5, per_side) * size_m[1]
     )
-    c, s = np.cos(heading_rad), np.sin(heading_rad)
-    offsets = np.column_stack([c * along.ravel() - s * across.ravel(),
-                               s * along.ravel() + c * across.ravel()])  # fmt: skip
-    return np.asarray(centre_xy + offsets, dtype=np.float64)
+    heading = np.asarray(heading_rad, dtype=np.float64)[..., None]
+    c, s = np.cos(heading), np.sin(heading)
+    offsets = np.stack([c * along.ravel() - s * across.ravel(),
+                        s * along.ravel() + c * across.ravel()], -1)  # fmt: skip
+    return np.asarray(np.asarray(centre_xy)[..., None, :] + offsets, dtype=np.float64)
 
 
 def in_rectangle(
-    points_xy: FloatArray, centre_xy: FloatArray, heading_rad: float, size_m: tuple[float, float]
+    points_xy: FloatArray, centre_xy: FloatArray, heading_rad: float | FloatArray,
+    size_m: tuple[float, float],
 ) -> FloatArray:
-    """Whether table-plane points [N, 2] lie in the rectangle of ``size_m`` (along, across
-    ``heading_rad``) centred at ``centre_xy`` [2]: bool [N]."""
-    offset = np.asarray(points_xy, dtype=np.float64) - centre_xy
-    c, s = np.cos(heading_rad), np.sin(heading_rad)
-    along, across = offset @ np.array([c, s]), offset @ np.array([-s, c])
+    """Whether table-plane points [P, 2] lie in the rectangle of ``size_m`` (along, across
+    ``heading_rad`` [...]) centred at ``centre_xy`` [..., 2]: bool [..., P]."""
+    offset = np.asarray(points_xy, dtype=np.float64) - np.asarray(centre_xy)[..., None, :]
+    heading = np.asarray(heading_rad, dtype=np.float64)[..., None]
+    c, s = np.cos(heading), np.sin(heading)
+    along = offset[..., 0] * c + offset[..., 1] * s
+    across = offset[..., 1] * c - offset[..., 0] * s
     return np.asarray((np.abs(along) <= 0.5 * size_m[0]) & (np.abs(across) <= 0.5 * size_m[1]))
 
 
@@ -118,17 +123,15 @@ def fingers_blocked(
     centres_xy [N, 2] with headings_rad [N] would come down on a fitted link of ``shape``,
     or on more than ``max_cloud_points`` points of the observed object cloud_xy [P, 2]
     (None: the links only): bool [N]."""
-    footprints = np.stack([finger_footprint(centre, float(heading), size_m)
-                           for centre, heading in zip(centres_xy, headings_rad, strict=True)])
-    flat = footprints.reshape(-1, 2)  # fmt: skip
+    footprints = finger_footprint(centres_xy, headings_rad, size_m)  # [N, F, 2]
+    flat = footprints.reshape(-1, 2)
     on_link = np.zeros(len(flat), dtype=bool)
     for link in shape.links:
         on_link |= inside_link(link, flat)
-    blocked = on_link.reshape(len(footprints), -1).any(axis=1)
+    blocked = on_link.reshape(footprints.shape[:-1]).any(axis=-1)
     if max_cloud_points is not None:
-        counts = [int(in_rectangle(cloud_xy, centre, float(heading), size_m).sum())
-                  for centre, heading in zip(centres_xy, headings_rad, strict=True)]  # fmt: skip
-        blocked |= np.asarray(counts) > max_cloud_points
+        counts = in_rectangle(cloud_xy, centres_xy, headings_rad, size_m).sum(axis=-1)
+        blocked |= counts > max_cloud_points
     return np.asarray(blocked)
 
 

@@ -32,6 +32,7 @@ from vistac.plugins.actions.affordances import (
     CLOUD_POINTS_FIELD,
     FINGER_FOOTPRINT_FIELD,
     fingers_blocked,
+    inside_link,
     link_outline,
 )
 from vistac.protocols import Scene
@@ -175,8 +176,14 @@ class ICEMController(Component):
 
     def _blocked_check(self, shape: ShapeEstimate) -> Callable[[FloatArray, list[Push]], Any]:
         """Whether pushes, the fingers descending at starts [N, 2], would come down on the
-        object as the last look saw it: its fitted links or its cloud (bool [N])."""
+        object as the last look saw it: its fitted links or the points of its cloud that no
+        link covers (what the fit missed; bool [N]). Those points are found once per plan:
+        the check runs for every sample of every iteration."""
         cloud_xy = np.asarray(shape.cloud.points_m, dtype=np.float64)[:, :2]
+        covered = np.zeros(len(cloud_xy), dtype=bool)
+        for link in shape.links:
+            covered |= inside_link(link, cloud_xy)
+        cloud_xy = cloud_xy[~covered]
         margin_m = 2.0 * self.config.finger_clearance_m
         along_m, across_m = self.config.finger_footprint_m
         size_m = (along_m + margin_m, across_m + margin_m)
