@@ -153,7 +153,7 @@ class ICEMController(Component):
         with torch.inference_mode():  # rollouts only: no autograd bookkeeping at all
             best, cost = self._optimise(outline, goal, rng, self._blocked_check(scene.shape))
         self.last_cost = cost
-        if cost >= _INFEASIBLE_COST / self.config.horizon_pushes:
+        if cost >= _INFEASIBLE_COST:
             raise DataError(
                 "actions.icem: every planned first push would start out of the arm's reach "
                 "or bring the fingers down on the object (approach_clearance_m, "
@@ -262,20 +262,23 @@ class ICEMController(Component):
     ) -> FloatArray:
         """Cost [N] (m) of push sequences [N, H, 3]: the sum over the pushes of the distance
         of the predicted link-0 pose to the goal after each (so the first push, the one
-        carried out, already heads there), plus a penalty for pushes the arm cannot start
-        and for a first push whose fingers would come down on the object (``blocked``: the
-        later pushes are planned again after the next look)."""
+        carried out, already heads there), plus a penalty for pushes the arm cannot start.
+        The first push, also infeasible where its fingers would come down on the object
+        (``blocked``; the later ones are planned again after the next look), costs at least
+        ``_INFEASIBLE_COST`` when infeasible, more than any later push can."""
         states: torch.Tensor | None = None
         costs = np.zeros(len(samples))
         low, high = self.workspace_m
-        for step in range(samples.shape[1]):
+        horizon = samples.shape[1]
+        for step in range(horizon):
             pushes, starts = self._pushes(outline, samples[:, step], states)
-            costs += np.any((starts < low) | (starts > high), axis=1) * _INFEASIBLE_COST
-            if step == 0:
-                costs += blocked(starts, pushes) * _INFEASIBLE_COST
+            infeasible = np.any((starts < low) | (starts > high), axis=1)
+            if step == 0:  # the push carried out: after the mean, a penalty of its own
+                infeasible = (infeasible | blocked(starts, pushes)) * horizon
+            costs += infeasible * _INFEASIBLE_COST
             states = self.filter.predict_states(pushes, self.config.rate_hz, states)
             costs += self._goal_distance(states, goal)
-        return costs / samples.shape[1]
+        return costs / horizon
 
     def _goal_distance(self, states: torch.Tensor, goal: FloatArray) -> FloatArray:
         """Distance [N] (m) of link 0 in states [N, n] from the goal, angles weighted."""
