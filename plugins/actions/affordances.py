@@ -17,6 +17,7 @@ the table edge (its y below ``edge_y_m``), push when it does not.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
@@ -81,6 +82,15 @@ def inside_link(link: Superquadric, points_xy: FloatArray) -> FloatArray:
     return np.asarray(inside_outside(local, link.scale_m, link.exponents, link.taper) < 1.0)
 
 
+def inside_any_link(links: Sequence[Superquadric], points_xy: FloatArray) -> FloatArray:
+    """Whether table-plane points [N, 2] lie inside any of the links (``inside_link``):
+    bool [N]."""
+    inside = np.zeros(len(points_xy), dtype=bool)
+    for link in links:
+        inside |= inside_link(link, points_xy)
+    return inside
+
+
 def finger_footprint(
     centre_xy: FloatArray, heading_rad: float | FloatArray, size_m: tuple[float, float],
     per_side: int = 5,
@@ -124,10 +134,7 @@ def fingers_blocked(
     or on more than ``max_cloud_points`` points of the observed object cloud_xy [P, 2]
     (None: the links only): bool [N]."""
     footprints = finger_footprint(centres_xy, headings_rad, size_m)  # [N, F, 2]
-    flat = footprints.reshape(-1, 2)
-    on_link = np.zeros(len(flat), dtype=bool)
-    for link in shape.links:
-        on_link |= inside_link(link, flat)
+    on_link = inside_any_link(shape.links, footprints.reshape(-1, 2))
     blocked = on_link.reshape(footprints.shape[:-1]).any(axis=-1)
     if max_cloud_points is not None:
         counts = in_rectangle(cloud_xy, centres_xy, headings_rad, size_m).sum(axis=-1)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -32,7 +33,7 @@ from vistac.plugins.actions.affordances import (
     CLOUD_POINTS_FIELD,
     FINGER_FOOTPRINT_FIELD,
     fingers_blocked,
-    inside_link,
+    inside_any_link,
     link_outline,
 )
 from vistac.protocols import Scene
@@ -151,7 +152,7 @@ class ICEMController(Component):
         link0 = self.filter.layout.link_pose(self.filter.belief.mean)[0, :3].numpy()
         outline = _OutlineInLink(scene.shape, link0, self._link_outline)
         with torch.inference_mode():  # rollouts only: no autograd bookkeeping at all
-            best, cost = self._optimise(outline, goal, rng, self._blocked_check(scene.shape))
+            best, cost = self._optimise(outline, goal, rng, self._obstacles(scene.shape))
         self.last_cost = cost
         if cost >= _INFEASIBLE_COST:
             raise DataError(
@@ -174,26 +175,15 @@ class ICEMController(Component):
             self._outline = (link, *link_outline(link, _OUTLINE_POINTS))
         return self._outline[1], self._outline[2]
 
-    def _blocked_check(self, shape: ShapeEstimate) -> Callable[[FloatArray, list[Push]], Any]:
-        """Whether pushes, the fingers descending at starts [N, 2], would come down on the
-        object as the last look saw it: its fitted links or the points of its cloud that no
-        link covers (what the fit missed; bool [N]). Those points are found once per plan:
-        the check runs for every sample of every iteration."""
+    def _obstacles(self, shape: ShapeEstimate) -> _Obstacles:
+        """Where the fingers must not come down, as the last look saw the object."""
         cloud_xy = np.asarray(shape.cloud.points_m, dtype=np.float64)[:, :2]
-        covered = np.zeros(len(cloud_xy), dtype=bool)
-        for link in shape.links:
-            covered |= inside_link(link, cloud_xy)
-        cloud_xy = cloud_xy[~covered]
         margin_m = 2.0 * self.config.finger_clearance_m
         along_m, across_m = self.config.finger_footprint_m
-        size_m = (along_m + margin_m, across_m + margin_m)
-
-        def blocked(starts: FloatArray, pushes: list[Push]) -> Any:
-            headings = np.array([push.pd_rad for push in pushes])
-            most = self.config.max_cloud_points_under_fingers
-            return fingers_blocked(shape, cloud_xy, starts, headings, size_m, most)
-
-        return blocked
+        return _Obstacles(
+            shape, cloud_xy[~inside_any_link(shape.links, cloud_xy)],
+            (along_m + margin_m, across_m + margin_m), self.config.max_cloud_points_under_fingers,
+        )  # fmt: skip
 
     # -- iCEM -------------------------------------------------------------------------------
 
@@ -208,10 +198,10 @@ class ICEMController(Component):
         outline: _OutlineInLink,
         goal: FloatArray,
         rng: np.random.Generator,
-        blocked: Callable[[FloatArray, list[Push]], Any],
+        obstacles: _Obstacles,
     ) -> tuple[FloatArray, float]:
-        """The best push sequence [H, 3] and its cost (m); ``blocked`` tells which first
-        pushes would bring the fingers down on the object (see ``_costs``)."""
+        """The best push sequence [H, 3] and its cost (m); the first push must keep the
+        fingers off the ``obstacles`` (see ``_costs``)."""
         config = self.config
         low, high = self._bounds()
         horizon = config.horizon_pushes
@@ -230,7 +220,7 @@ class ICEMController(Component):
             if iteration == config.iterations - 1:
                 samples = np.concatenate([samples, mean[None]])
             samples = self._clip(samples, low, high)
-            costs = self._costs(outline, samples, goal, blocked)
+            costs = self._costs(outline, samples, goal, obstacles)
             order = np.argsort(costs)
             elites = samples[order[: config.elites]]
             if costs[order[0]] < best_cost:
@@ -258,13 +248,13 @@ class ICEMController(Component):
         outline: _OutlineInLink,
         samples: FloatArray,
         goal: FloatArray,
-        blocked: Callable[[FloatArray, list[Push]], Any],
+        obstacles: _Obstacles,
     ) -> FloatArray:
         """Cost [N] (m) of push sequences [N, H, 3]: the sum over the pushes of the distance
         of the predicted link-0 pose to the goal after each (so the first push, the one
         carried out, already heads there), plus a penalty for pushes the arm cannot start.
-        The first push, also infeasible where its fingers would come down on the object
-        (``blocked``; the later ones are planned again after the next look), costs at least
+        The first push, also infeasible where its fingers would come down on the
+        ``obstacles`` (the later ones are planned again after the next look), costs at least
         ``_INFEASIBLE_COST`` when infeasible, more than any later push can."""
         states: torch.Tensor | None = None
         costs = np.zeros(len(samples))
@@ -274,7 +264,8 @@ class ICEMController(Component):
             pushes, starts = self._pushes(outline, samples[:, step], states)
             infeasible = np.any((starts < low) | (starts > high), axis=1)
             if step == 0:  # the push carried out: after the mean, a penalty of its own
-                infeasible = (infeasible | blocked(starts, pushes)) * horizon
+                headings = np.array([push.pd_rad for push in pushes])
+                infeasible = (infeasible | obstacles.blocked(starts, headings)) * horizon
             costs += infeasible * _INFEASIBLE_COST
             states = self.filter.predict_states(pushes, self.config.rate_hz, states)
             costs += self._goal_distance(states, goal)
@@ -304,6 +295,24 @@ class ICEMController(Component):
             for point, angle, duration in zip(points, pd_rad, samples[:, _DURATION], strict=True)
         ]
         return pushes, starts
+
+
+@dataclass(frozen=True)
+class _Obstacles:
+    """The fitted links and the object cloud's points no link covers (what the fit missed),
+    cloud_xy [P, 2], found once per plan: the check runs for every sample of every
+    iteration. size_m: the finger footprint grown by the clearance."""
+
+    shape: ShapeEstimate
+    cloud_xy: FloatArray
+    size_m: tuple[float, float]
+    max_cloud_points: int | None
+
+    def blocked(self, starts_xy: FloatArray, headings_rad: FloatArray) -> FloatArray:
+        """Whether fingers descending at starts_xy [N, 2] along headings_rad [N] would come
+        down on the object (``fingers_blocked``): bool [N]."""
+        return fingers_blocked(self.shape, self.cloud_xy, starts_xy, headings_rad, self.size_m,
+                               self.max_cloud_points)  # fmt: skip
 
 
 class _OutlineInLink:
