@@ -97,8 +97,15 @@ def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
     if summary.get("belief"):
         lines.append(
             _belief_table(
-                summary["belief"], (summary.get("ground_truth") or {}).get("parameters", {})
+                summary["belief"],
+                summary.get("belief_truth")
+                or (summary.get("ground_truth") or {}).get("parameters", {}),
             )
+        )
+    if summary.get("belief_truth"):
+        lines.append(
+            "  (truth: the true link nearest each belief link; the CoM in the belief's frame "
+            "of that link, where the belief puts it at the end)"
         )
     lines.append(f"  data: {out_dir}/ (run.json, summary.json, episodes/, views/)")
     return "\n".join(lines)

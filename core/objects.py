@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -216,6 +217,40 @@ def to_world_xy(points: FloatArray, pose: FloatArray) -> FloatArray:
     world[:, 0] = pose[0] + c * points[:, 0] - s * points[:, 1]
     world[:, 1] = pose[1] + s * points[:, 0] + c * points[:, 1]
     return world
+
+
+def match_links(belief_xy: FloatArray, true_xy: FloatArray) -> dict[int, int]:
+    """Belief link -> true link, minimising the summed distance of positions [Lb, 2], [Lt, 2].
+
+    With fewer true than belief links, the surplus belief links stay unmatched.
+    """
+    n_belief, n_true = len(belief_xy), len(true_xy)
+    best: tuple[float, dict[int, int]] = (math.inf, {})
+    for targets in itertools.permutations(range(n_true), min(n_belief, n_true)):
+        pairs = dict(zip(range(n_belief), targets, strict=False))
+        cost = sum(float(np.linalg.norm(belief_xy[b] - true_xy[t])) for b, t in pairs.items())
+        if cost < best[0]:
+            best = (cost, pairs)
+    return best[1]
+
+
+def com_in_frames(
+    parameters: dict[str, float],
+    links: dict[int, int],
+    frames: FloatArray,
+    link_poses: FloatArray,
+) -> dict[str, float]:
+    """True parameters (``com_x_t``, ``com_y_t`` in link t's frame) with each matched link's
+    CoM moved into another frame: ``links`` maps frame b -> true link t, ``frames`` [B, 3] and
+    ``link_poses`` [Lt, 3] are planar poses (x m, y m, theta rad) at the same instant (a
+    filter's fitted frames, whose origin and yaw differ from the link frames'). The CoM of an
+    unmatched link is dropped; the other entries are kept."""
+    moved = {name: value for name, value in parameters.items() if not name.startswith("com_")}
+    for b, t in links.items():
+        com = np.array([[parameters[f"com_x_{t}"], parameters[f"com_y_{t}"], 0.0]])
+        local = to_link_frame(to_world_xy(com, np.asarray(link_poses[t])), np.asarray(frames[b]))
+        moved[f"com_x_{t}"], moved[f"com_y_{t}"] = float(local[0, 0]), float(local[0, 1])
+    return moved
 
 
 # ---------------------------------------------------------------------------------------------

@@ -12,9 +12,11 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import py_trees
 from py_trees.common import Status
 from vistac.errors import SafetyError, VistacError
+from vistac.objects import com_in_frames, match_links
 from vistac.pluginmanager import Plugins
 from vistac.recording import RunRecorder, prepare_out_dir
 from vistac.run import RunContext, SimClock
@@ -174,9 +176,33 @@ class Scheduler:
         summary["ground_truth"] = truth
         belief = summary.get("belief")
         if belief and truth and "parameters" in truth:
+            summary["belief_truth"] = belief_truth(belief, truth)
             summary["errors"] = {
-                name: abs(entry["mean"] - truth["parameters"][name])
+                name: abs(entry["mean"] - summary["belief_truth"][name])
                 for name, entry in belief.items()
-                if name in truth["parameters"]
+                if name in summary["belief_truth"]
             }
         return summary
+
+
+def belief_truth(belief: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
+    """The true value of each belief parameter entry: a belief link's ``m_b``, ``f_b``,
+    ``com_x_b``, ``com_y_b`` are those of the true link nearest it, the CoM in the belief's
+    frame of link b (a fitted frame, whose origin and yaw differ from the link frame's) where
+    the belief puts it at the end; other entries (``f_j_k``) by name. Without the belief's
+    or the true link poses, entries compare by name."""
+    parameters: dict[str, float] = truth["parameters"]
+    n_belief = sum(1 for name in belief if name.startswith("m_"))
+    if "link_poses" not in truth or not all(f"theta_{b}" in belief for b in range(n_belief)):
+        return dict(parameters)
+    frames = np.array(
+        [[belief[f"{key}_{b}"]["mean"] for key in ("x", "y", "theta")] for b in range(n_belief)]
+    ).reshape(n_belief, 3)
+    link_poses = np.asarray(truth["link_poses"], dtype=np.float64).reshape(-1, 3)
+    links = match_links(frames[:, :2], link_poses[:, :2])
+    moved = com_in_frames(parameters, links, frames, link_poses)
+    by_belief = {name: value for name, value in moved.items() if name.startswith("f_j_")}
+    for b, t in links.items():
+        for key in ("m", "f", "com_x", "com_y"):
+            by_belief[f"{key}_{b}"] = moved[f"{key}_{t}"]
+    return by_belief

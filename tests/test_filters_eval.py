@@ -34,6 +34,7 @@ from vistac.plugins.filters.evaluate import (
     run_dir_of,
     tables_markdown,
     tracking_table,
+    truth_in_belief_frames,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,28 +48,53 @@ def _belief(values: dict[str, float]) -> dict[str, dict[str, float]]:
     return {name: {"mean": value, "std": 0.1} for name, value in values.items()}
 
 
-def test_nrmse_by_hand_with_radial_com() -> None:
+def test_nrmse_by_hand_with_the_com_as_a_point() -> None:
     truth_a = {"m_0": 0.8, "f_0": 0.3, "com_x_0": 0.0, "com_y_0": 0.02}
     truth_b = {"m_0": 0.8, "f_0": 0.4, "com_x_0": 0.0, "com_y_0": -0.01}
-    # radial CoM: estimate 0.05 vs truth 0.02 (error 0.03); 0.01 vs 0.01 (error 0, rotated)
+    # CoM errors: (0.03, 0.04) - (0, 0.02) is 0.036 m; (0, 0.01) against (0, -0.01), as far
+    # from the origin but on the other side, is 0.02 m
     run_a = parameter_pairs(
         _belief({"m_0": 0.9, "f_0": 0.35, "com_x_0": 0.03, "com_y_0": 0.04}), truth_a, {0: 0}
     )
     run_b = parameter_pairs(
-        _belief({"m_0": 0.5, "f_0": 0.3, "com_x_0": -0.006, "com_y_0": 0.008}), truth_b, {0: 0}
+        _belief({"m_0": 0.5, "f_0": 0.3, "com_x_0": 0.0, "com_y_0": 0.01}), truth_b, {0: 0}
     )
-    assert run_a["CoM_0"] == pytest.approx((0.05, 0.02))
+    assert run_a["CoM_0"] == ((0.03, 0.04), (0.0, 0.02))
     rows = nrmse_rows([run_a, run_b], RANGES)
     expected = {
         "m_0": math.sqrt((0.1**2 + 0.3**2) / 2) / 1.4,
         "f_0": math.sqrt((0.05**2 + 0.1**2) / 2) / 0.4,
-        "CoM_0": math.sqrt((0.03**2 + 0.0**2) / 2) / 0.05,
+        "CoM_0": math.sqrt((0.03**2 + 0.02**2 + 0.02**2) / 2) / 0.05,
     }
     for name, value in expected.items():
         assert rows[name] == pytest.approx(value)
     assert rows["overall"] == pytest.approx(sum(expected.values()) / 3)
     assert rows["m_0"] == pytest.approx(0.159719, abs=1e-6)
     assert math.isnan(nrmse([], 1.0))
+
+
+def test_the_true_com_is_scored_in_the_fitted_frame() -> None:
+    # True link 1 at (0.1, 0.2) turned by 90 deg, CoM 0.02 m along its x: the CoM lies at
+    # (0.1, 0.22). The fitted frame of belief link 0 sits 0.01 m along +y from the link's
+    # origin and is turned by 270 deg (a symmetric footprint's superquadric, flipped): there
+    # the CoM is 0.01 m along its -x.
+    truth = {"m_1": 1.0, "f_1": 0.4, "com_x_1": 0.02, "com_y_1": 0.0, "f_j_0": 0.2}
+    fitted = np.array([[0.1, 0.21, 1.5 * math.pi]])
+    poses = (fitted, np.array([[0.0, 0.0, 0.0], [0.1, 0.2, 0.5 * math.pi]]))
+    moved = truth_in_belief_frames(truth, {0: 1}, poses)
+    assert moved["com_x_1"] == pytest.approx(-0.01) and moved["com_y_1"] == pytest.approx(0.0)
+    assert {k: v for k, v in moved.items() if not k.startswith("com_")} == {
+        "m_1": 1.0, "f_1": 0.4, "f_j_0": 0.2}  # fmt: skip
+    belief = _belief({"m_0": 1.0, "f_0": 0.4, "com_x_0": -0.01, "com_y_0": 0.0})
+    assert nrmse_rows([parameter_pairs(belief, moved, {0: 1})], RANGES)["CoM_1"] == pytest.approx(
+        0.0, abs=1e-12
+    )
+    com_entries = normalised_errors(belief, moved, {0: 1})[2:]
+    assert [name for name, _, _ in com_entries] == ["com_x_0", "com_y_0"]
+    assert [z for _, z, _ in com_entries] == pytest.approx([0.0, 0.0], abs=1e-9)
+    # without the belief's frames the CoM cannot be scored
+    unknown = truth_in_belief_frames(truth, {0: 1}, None)
+    assert "com_x_1" not in unknown and "CoM_1" not in parameter_pairs(belief, unknown, {0: 1})
 
 
 def test_rows_follow_the_matched_true_link_and_joint() -> None:
@@ -153,6 +179,24 @@ FAST = ["--set", "components.views.with.max_views=1",
         "--set", "components.camera.with.height=120"]  # fmt: skip
 
 
+def _com_error_m(run_dir: Path, summary: dict[str, Any]) -> float:
+    """Distance of the final CoM estimate of belief link 0 from the true CoM, both in the
+    fitted frame as it lay at the first filter step (a single-link object)."""
+    first = summary["filter_steps"][0]
+    x, y, theta = (first[f"{key}_0"]["mean"] for key in ("x", "y", "theta"))
+    with np.load(run_dir / "episodes" / f"{first['episode']:04d}" / "data.npz") as data:
+        link_x, link_y, link_theta = data["object_pose"][0, 0]
+    truth = summary["ground_truth"]["parameters"]
+    com_x, com_y = truth["com_x_0"], truth["com_y_0"]
+    world_x = link_x + math.cos(link_theta) * com_x - math.sin(link_theta) * com_y
+    world_y = link_y + math.sin(link_theta) * com_x + math.cos(link_theta) * com_y
+    dx, dy = world_x - x, world_y - y
+    c, s = math.cos(theta), math.sin(theta)
+    local = (c * dx + s * dy, -s * dx + c * dy)
+    belief = summary["belief"]
+    return math.dist((belief["com_x_0"]["mean"], belief["com_y_0"]["mean"]), local)
+
+
 def test_eval_end_to_end(tmp_path: Path) -> None:
     out = tmp_path / "eval"
     code = main([
@@ -190,8 +234,7 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
         by_hand = {
             "m_0": abs(belief["m_0"]["mean"] - truth["m_0"]) / ranges["m"],
             "f_0": abs(belief["f_0"]["mean"] - truth["f_0"]) / ranges["f"],
-            "CoM_0": abs(math.hypot(belief["com_x_0"]["mean"], belief["com_y_0"]["mean"])
-                         - math.hypot(truth["com_x_0"], truth["com_y_0"])) / ranges["CoM"],
+            "CoM_0": _com_error_m(run_dir, summary) / ranges["CoM"],
         }  # fmt: skip
         for name, value in by_hand.items():
             assert math.isfinite(cell[label][name])
@@ -428,16 +471,16 @@ def test_mass_and_friction_from_their_product_match_monte_carlo() -> None:
 
 def test_reference_columns_score_the_prior_and_a_known_product() -> None:
     records = [_record("A-GNN", 1.0, 0.001), _record("U-GNN", 1.2, 0.001)]
-    records[0]["parameters"] |= {"CoM_0": (0.01, 0.03)}
+    records[0]["parameters"] |= {"CoM_0": ((0.02, 0.0), (0.01, 0.03))}
     prior = Prior(mass_kg=(0.5, 0.4), friction=(0.2, 0.1), com_m=(0.0, 0.02))
     references = reference_records(records, prior)
     assert [r["variant"] for r in references] == ["Prior", "m·f known"]  # one per object
     truth_m, truth_f = records[0]["parameters"]["m_0"][1], records[0]["parameters"]["f_0"][1]
     assert references[0]["parameters"] == {
-        "m_0": (0.5, truth_m), "f_0": (0.2, truth_f), "CoM_0": (0.0, 0.03)
+        "m_0": (0.5, truth_m), "f_0": (0.2, truth_f), "CoM_0": ((0.0, 0.0), (0.01, 0.03))
     }  # fmt: skip
     known = references[1]["parameters"]
-    assert known["CoM_0"] == (0.03, 0.03)
+    assert known["CoM_0"] == ((0.01, 0.03), (0.01, 0.03))
     assert (known["m_0"][0], known["f_0"][0]) == product_posterior_mean(truth_m * truth_f)
     tables = nrmse_tables([*records, *references], RANGES, ["A-GNN", "Prior", "m·f known"])
     assert list(tables["homogeneous"]["push"]) == ["A-GNN", "Prior", "m·f known"]

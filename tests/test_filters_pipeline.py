@@ -297,6 +297,17 @@ def test_explore_push_runs_with_each_process_model(tmp_path: Path, model: str) -
     assert {"m_0", "f_0", "com_x_0", "com_y_0"} <= set(belief)
     assert all(np.isfinite(entry["mean"]) for entry in belief.values())
     assert "parameter" in result.stdout and "truth" in result.stdout
+    # the truth of the CoM is told in the belief's frame (the object rests at the end)
+    truth, told = summary["ground_truth"], summary["belief_truth"]
+    x, y, theta = (belief[f"{key}_0"]["mean"] for key in ("x", "y", "theta"))
+    link_x, link_y, link_theta = truth["link_poses"][0]
+    com = truth["parameters"]["com_x_0"], truth["parameters"]["com_y_0"]
+    world = (link_x + np.cos(link_theta) * com[0] - np.sin(link_theta) * com[1],
+             link_y + np.sin(link_theta) * com[0] + np.cos(link_theta) * com[1])  # fmt: skip
+    dx, dy = world[0] - x, world[1] - y
+    local = (np.cos(theta) * dx + np.sin(theta) * dy, -np.sin(theta) * dx + np.cos(theta) * dy)
+    assert (told["com_x_0"], told["com_y_0"]) == pytest.approx(local)
+    assert summary["errors"]["com_x_0"] == pytest.approx(abs(belief["com_x_0"]["mean"] - local[0]))
 
 
 def test_a_corrupt_checkpoint_is_a_clear_error(tmp_path: Path) -> None:

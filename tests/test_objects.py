@@ -13,10 +13,12 @@ from vistac.objects import (
     HINGE_GAP_M,
     ObjectSpec,
     attachment,
+    com_in_frames,
     footprint_polygon,
     generate_configurations,
     link_frames,
     load_object,
+    match_links,
     object_from_dict,
     points_inside,
     polygon_area,
@@ -188,3 +190,25 @@ def test_skill_object_library_loads() -> None:
     assert names >= {*FOOTPRINTS, "hetero_rect_tri", "artic_rect_rect"}
     for path in SKILL_OBJECTS.glob("*.yaml"):
         assert load_object(path).name == path.stem
+
+
+def test_links_match_by_position_and_the_com_moves_into_their_frames() -> None:
+    # True link 0 at the origin, link 1 at (0.1, 0) turned by 90 deg with its CoM 0.02 m
+    # along its x, so at (0.1, 0.02). Fitted frame 0 lies near link 1, 0.01 m along +y from
+    # its origin, turned by -90 deg: there that CoM is 0.01 m along -x. Fitted frame 1 lies
+    # 1 mm from link 0's origin along x, turned by pi: link 0's CoM (0.01, 0) is 9 mm along
+    # its -x.
+    true_poses = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, np.pi / 2]])
+    frames = np.array([[0.1, 0.01, -np.pi / 2], [0.001, 0.0, np.pi]])
+    links = match_links(frames[:, :2], true_poses[:, :2])
+    assert links == {0: 1, 1: 0}
+    truth = {"m_0": 0.5, "com_x_0": 0.01, "com_y_0": 0.0, "m_1": 1.0, "com_x_1": 0.02,
+             "com_y_1": 0.0, "f_j_0": 0.1}  # fmt: skip
+    moved = com_in_frames(truth, links, frames, true_poses)
+    assert moved["com_x_1"] == pytest.approx(-0.01) and moved["com_y_1"] == pytest.approx(0.0)
+    assert moved["com_x_0"] == pytest.approx(-0.009) and moved["com_y_0"] == pytest.approx(0.0)
+    assert (moved["m_0"], moved["m_1"], moved["f_j_0"]) == (0.5, 1.0, 0.1)
+    # one frame for two links: link 0 is left unmatched and its CoM dropped
+    single = match_links(frames[:1, :2], true_poses[:, :2])
+    assert single == {0: 1}
+    assert "com_x_0" not in com_in_frames(truth, single, frames[:1], true_poses)

@@ -11,7 +11,7 @@ import pytest
 from conftest import write
 from vistac.errors import ConfigError
 from vistac.pluginmanager import Plugins
-from vistac.scheduler import Scheduler
+from vistac.scheduler import Scheduler, belief_truth
 from vistac.skill import load_skill
 
 
@@ -136,3 +136,26 @@ def test_diverged_filter_stops_the_run(tmp_path: Path, plugins: Plugins) -> None
     assert result.status == "error"
     assert "GaussianBelief.mean: contains NaN" in (result.error or "")
     assert fixtures_plugin.STOP_CALLS == ["stop"]
+
+
+def test_the_truth_is_told_per_belief_link_in_its_frame() -> None:
+    """The summary's truth for each belief entry: belief link 0 sits on true link 1, its
+    frame turned by pi from the link's (a superquadric of a symmetric footprint), so the true
+    CoM (0.02, -0.01) of link 1 reads (-0.02, 0.01) there; the joint friction goes by name."""
+    belief = {
+        f"{key}_{b}": {"mean": value, "std": 0.1}
+        for b, pose in enumerate([(0.3, 0.1, np.pi), (0.0, 0.0, 0.0)])
+        for key, value in zip(("x", "y", "theta", "m", "f", "com_x", "com_y"),
+                              (*pose, 1.0, 0.3, 0.0, 0.0), strict=True)
+    } | {"f_j_0": {"mean": 0.1, "std": 0.1}}  # fmt: skip
+    truth = {
+        "parameters": {"m_0": 0.4, "f_0": 0.2, "com_x_0": 0.0, "com_y_0": 0.0, "m_1": 0.9,
+                       "f_1": 0.25, "com_x_1": 0.02, "com_y_1": -0.01, "f_j_0": 0.15},
+        "link_poses": [[0.0, 0.0, 0.0], [0.3, 0.1, 0.0]],
+    }  # fmt: skip
+    told = belief_truth(belief, truth)
+    assert told == pytest.approx({"m_0": 0.9, "f_0": 0.25, "com_x_0": -0.02, "com_y_0": 0.01,
+                                  "m_1": 0.4, "f_1": 0.2, "com_x_1": 0.0, "com_y_1": 0.0,
+                                  "f_j_0": 0.15})  # fmt: skip
+    # without poses, entries compare by name
+    assert belief_truth(belief, {"parameters": truth["parameters"]}) == truth["parameters"]

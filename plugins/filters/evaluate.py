@@ -11,12 +11,14 @@ the parameters are estimated.
 
 Parameter error. NRMSE per parameter = RMSE over the runs of (estimate - truth) divided by the
 parameter's range over the object set. Mass, table friction and joint friction use the ranges
-the 120 configurations are drawn from (:data:`vistac.objects.MASS_RANGE_KG`, ...); the CoM is
-compared as its radial distance ``sqrt(com_x^2 + com_y^2)`` from the link frame's origin,
-because the estimate lives in the fitted superquadric's frame, which may be rotated against
-the true link frame, and is normalised by the range of the radial CoM over the 120 generated
-configurations. Belief links are matched to true links by their positions at the first
-filter step (nearest, over all assignments).
+the 120 configurations are drawn from (:data:`vistac.objects.MASS_RANGE_KG`, ...). The CoM
+error is the distance between the estimated and the true CoM: the estimate lives in the
+fitted superquadric's frame, whose origin and yaw differ from the true link frame's (a
+superquadric of a symmetric footprint may be turned by pi, its centre is not the footprint's
+centroid), so the true CoM is expressed in the fitted frame as it lay at the first filter step
+of the run (before the first push moves the object). It is normalised by the range of the
+radial CoM over the 120 generated configurations. Belief links are matched to true links by
+their positions at that step (nearest, over all assignments).
 
 Pose tracking. The belief's poses are those of the fitted superquadric frames, the truth the
 link frames, so each step is compared as a change from the episode's first step: the error is
@@ -29,14 +31,13 @@ from __future__ import annotations
 
 import contextlib
 import io
-import itertools
 import json
 import logging
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import yaml
@@ -48,9 +49,11 @@ from vistac.objects import (
     MASS_RANGE_KG,
     OBJECT_TYPES,
     ObjectSpec,
+    com_in_frames,
     generate_configurations,
     interleave_types,
     load_object,
+    match_links,
     write_configurations,
 )
 from vistac.plugins.filters.component import Prior
@@ -85,12 +88,14 @@ VARIANTS: tuple[Variant, ...] = (
 )
 """Every variant ``vistac eval`` knows, in table order."""
 FAMILIES: tuple[str, ...] = ("m", "f", "CoM", "f_j")
-"""Parameter families of the tables: mass, table friction, radial CoM, joint friction."""
+"""Parameter families of the tables: mass, table friction, CoM, joint friction."""
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 OBJECT_SET_SEED = 0
 """Seed of the generated object set (``vistac objects generate`` default)."""
 
-Pairs = dict[str, tuple[float, float]]
+Value = float | tuple[float, float]
+"""A scalar parameter, or a CoM (x, y) in the fitted frame (m)."""
+Pairs = dict[str, tuple[Value, Value]]
 """Row name (``m_0``, ``CoM_1``, ``f_j_0``) -> (estimate, truth)."""
 
 
@@ -145,27 +150,13 @@ def family_of(row: str) -> str:
     return row.rsplit("_", 1)[0]
 
 
-def match_links(belief_xy: np.ndarray, true_xy: np.ndarray) -> dict[int, int]:
-    """Belief link -> true link, minimising the summed distance of positions [Lb, 2], [Lt, 2].
-
-    With fewer true than belief links, the surplus belief links stay unmatched.
-    """
-    n_belief, n_true = len(belief_xy), len(true_xy)
-    best: tuple[float, dict[int, int]] = (math.inf, {})
-    for targets in itertools.permutations(range(n_true), min(n_belief, n_true)):
-        pairs = dict(zip(range(n_belief), targets, strict=False))
-        cost = sum(float(np.linalg.norm(belief_xy[b] - true_xy[t])) for b, t in pairs.items())
-        if cost < best[0]:
-            best = (cost, pairs)
-    return best[1]
-
-
 def parameter_pairs(
     belief: dict[str, dict[str, float]], truth: dict[str, float], links: dict[int, int]
 ) -> Pairs:
     """(estimate, truth) per table row of one belief; ``links`` maps belief to true links.
 
-    Rows are named by the true link: ``m_l``, ``f_l``, ``CoM_l`` (radial, m), ``f_j_k``.
+    Rows are named by the true link: ``m_l``, ``f_l``, ``CoM_l`` ((x, y) m, in the frame the
+    belief's are: see :func:`truth_in_belief_frames`), ``f_j_k``.
     """
     pairs: Pairs = {}
     for b, t in links.items():
@@ -174,10 +165,11 @@ def parameter_pairs(
         mean = {key: belief[f"{key}_{b}"]["mean"] for key in ("m", "f", "com_x", "com_y")}
         pairs[f"m_{t}"] = (mean["m"], truth[f"m_{t}"])
         pairs[f"f_{t}"] = (mean["f"], truth[f"f_{t}"])
-        pairs[f"CoM_{t}"] = (
-            radial_com(mean["com_x"], mean["com_y"]),
-            radial_com(truth[f"com_x_{t}"], truth[f"com_y_{t}"]),
-        )
+        if f"com_x_{t}" in truth:
+            pairs[f"CoM_{t}"] = (
+                (mean["com_x"], mean["com_y"]),
+                (truth[f"com_x_{t}"], truth[f"com_y_{t}"]),
+            )
     for name, value in truth.items():
         if name.startswith("f_j_") and name in belief:
             pairs[name] = (belief[name]["mean"], value)
@@ -208,12 +200,13 @@ def log_score(entry: str, z: float, std: float, ranges: dict[str, float]) -> flo
     return 0.5 * z**2 + math.log(std / ranges[family]) + 0.5 * math.log(2 * math.pi)
 
 
-def nrmse(pairs: Sequence[tuple[float, float]], value_range: float) -> float:
-    """RMSE of (estimate - truth) over ``pairs`` divided by ``value_range``; NaN if empty."""
+def nrmse(pairs: Sequence[tuple[Value, Value]], value_range: float) -> float:
+    """RMSE of the error ``|estimate - truth|`` (a distance for a CoM's (x, y)) over
+    ``pairs`` divided by ``value_range``; NaN if empty."""
     if not pairs or not value_range > 0:
         return float("nan")
-    errors = np.array([estimate - truth for estimate, truth in pairs], dtype=np.float64)
-    return float(np.sqrt(np.mean(errors**2)) / value_range)
+    errors = [np.linalg.norm(np.subtract(estimate, truth)) for estimate, truth in pairs]
+    return float(np.sqrt(np.mean(np.square(errors))) / value_range)
 
 
 def nrmse_rows(runs: Sequence[Pairs], ranges: dict[str, float]) -> dict[str, float]:
@@ -248,9 +241,9 @@ def product_posterior_mean(product: float) -> tuple[float, float]:
 
 def prior_pairs(truth: Pairs, prior: Prior) -> Pairs:
     """``truth`` (the pairs of a scored run) with the prior's means as the estimates."""
-    means = {"m": prior.mass_kg[0], "f": prior.friction[0],
-             "CoM": radial_com(prior.com_m[0], prior.com_m[0]),
-             "f_j": prior.joint_friction_nm[0]}  # fmt: skip
+    means: dict[str, Value] = {"m": prior.mass_kg[0], "f": prior.friction[0],
+                               "CoM": (prior.com_m[0], prior.com_m[0]),
+                               "f_j": prior.joint_friction_nm[0]}  # fmt: skip
     return {row: (means[family_of(row)], value) for row, (_, value) in truth.items()}
 
 
@@ -260,7 +253,7 @@ def product_known_pairs(truth: Pairs) -> Pairs:
     pairs = {row: (value, value) for row, (_, value) in truth.items()}
     for row in truth:
         if family_of(row) == "m" and f"f_{row[2:]}" in truth:
-            mass, friction = truth[row][1], truth[f"f_{row[2:]}"][1]
+            mass, friction = cast(float, truth[row][1]), cast(float, truth[f"f_{row[2:]}"][1])
             m_hat, f_hat = product_posterior_mean(mass * friction)
             pairs[row], pairs[f"f_{row[2:]}"] = (m_hat, mass), (f_hat, friction)
     return pairs
@@ -372,17 +365,42 @@ def _n_belief_links(belief: dict[str, Any]) -> int:
     return sum(1 for name in belief if name.startswith("m_"))
 
 
-def run_links(run_dir: Path, summary: dict[str, Any]) -> dict[int, int]:
-    """Belief link -> true link, from the poses at the first filter step of episode 0."""
+FirstPoses = tuple[np.ndarray, np.ndarray] | None
+"""Belief [Lb, 3] and true [Lt, 3] link poses at the first filter step (:func:`first_poses`)."""
+
+
+def first_poses(run_dir: Path, summary: dict[str, Any]) -> FirstPoses:
+    """The belief's link poses [Lb, 3] at the run's first filter step and the true link poses
+    [Lt, 3] at that step (x m, y m, theta rad); None for a run without filter steps."""
     steps = summary.get("filter_steps") or []
-    n_belief = _n_belief_links(summary.get("belief") or {})
-    n_true = len(summary["ground_truth"]["object"]["links"])
-    if not steps or n_belief == n_true == 1:
-        return {b: b for b in range(min(n_belief, n_true))}
+    if not steps:
+        return None
     first = steps[0]
     with np.load(run_dir / "episodes" / f"{int(first['episode']):04d}" / "data.npz") as data:
-        true_xy = np.asarray(data["object_pose"][0, :, :2], dtype=np.float64)
-    return match_links(belief_poses([first], range(n_belief))[0, :, :2], true_xy)
+        true_pose = np.asarray(data["object_pose"][0], dtype=np.float64)
+    n_belief = _n_belief_links(summary.get("belief") or {})
+    return belief_poses([first], range(n_belief))[0], true_pose
+
+
+def run_links(summary: dict[str, Any], poses: FirstPoses) -> dict[int, int]:
+    """Belief link -> true link, nearest at the first filter step (``poses``)."""
+    n_belief = _n_belief_links(summary.get("belief") or {})
+    n_true = len(summary["ground_truth"]["object"]["links"])
+    if poses is None or n_belief == n_true == 1:
+        return {b: b for b in range(min(n_belief, n_true))}
+    return match_links(poses[0][:, :2], poses[1][:, :2])
+
+
+def truth_in_belief_frames(
+    truth: dict[str, float], links: dict[int, int], poses: FirstPoses
+) -> dict[str, float]:
+    """``truth`` with each matched true link's CoM in the frame of its belief link
+    (:func:`vistac.objects.com_in_frames`), the frames as they lay at the first filter step
+    (``poses``: :func:`first_poses`). Without poses the CoM entries are dropped: the belief's
+    frames are unknown, so its CoM cannot be scored."""
+    if poses is None:
+        return {name: value for name, value in truth.items() if not name.startswith("com_")}
+    return com_in_frames(truth, links, poses[0], poses[1])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -649,8 +667,9 @@ def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
 def score_run(run_dir: Path) -> dict[str, Any]:
     """Parameter pairs (final and after each interaction) and tracking errors of one run."""
     summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
-    truth = summary["ground_truth"]["parameters"]
-    links = run_links(run_dir, summary)
+    poses = first_poses(run_dir, summary)
+    links = run_links(summary, poses)
+    truth = truth_in_belief_frames(summary["ground_truth"]["parameters"], links, poses)
     history = [parameter_pairs(b, truth, links) for b in summary.get("belief_history", [])]
     return {
         "links": {str(b): t for b, t in links.items()},
@@ -771,6 +790,9 @@ def tables_markdown(
     """Markdown NRMSE tables (one per object type and interaction) and the tracking table."""
     lines = ["# Parameter NRMSE (RMSE / range over the object set)", ""]
     lines += [
+        "CoM: the distance between the estimated and the true CoM, the truth in the fitted "
+        "frame as it lay at the first filter step; its range is that of the radial CoM.",
+        "",
         "References on the same objects: *Prior*, the prior's means; *m·f known*, each link's "
         "CoM and the joint friction exact and m and f the best guess from their product, "
         "which is what the force of a quasi-static push shows (about 0.19 for m and 0.22 "
@@ -862,7 +884,8 @@ def belief_series(
 
 
 def plot_belief(run_dir: Path, record: dict[str, Any], path: Path) -> None:
-    """Mean ± 2 std of m, f, radial CoM of belief link 0 over time, truth as a line."""
+    """Mean ± 2 std of m, f and the CoM's distance from the fitted frame's origin of belief
+    link 0 over time, truth as a line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -875,12 +898,13 @@ def plot_belief(run_dir: Path, record: dict[str, Any], path: Path) -> None:
     true_link = record["links"]["0"]
     time_s = np.array([step["time_s"] for step in steps], dtype=np.float64)
     figure, axes = plt.subplots(3, 1, figsize=(6, 6), sharex=True)
-    units = {"m": "mass (kg)", "f": "friction", "CoM": "radial CoM (m)"}
+    units = {"m": "mass (kg)", "f": "friction", "CoM": "CoM from origin (m)"}
     for ax, (family, (mean, std)) in zip(axes, belief_series(steps, 0).items(), strict=True):
         ax.plot(time_s, mean, ".", markersize=2, label="mean")
         ax.fill_between(time_s, mean - 2 * std, mean + 2 * std, alpha=0.3, label="± 2 std")
         if f"{family}_{true_link}" in record["parameters"]:
-            ax.axhline(record["parameters"][f"{family}_{true_link}"][1], color="k", label="truth")
+            truth = record["parameters"][f"{family}_{true_link}"][1]
+            ax.axhline(float(np.linalg.norm(truth)), color="k", label="truth")
         ax.set_ylabel(units[family])
     axes[0].set_title(f"{record['object']}: {record['variant']} (belief link 0)")
     axes[0].legend(fontsize=7)
@@ -911,7 +935,8 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
                                "estimate_parameters": v.estimate_parameters} for v in variants},
         "ranges": ranges,
         "ranges_note": "m, f, f_j: the object set's sampling ranges; CoM: range of the radial "
-        "CoM over the 120 generated configurations",
+        "CoM over the 120 generated configurations (the CoM error is the distance between "
+        "estimate and truth, the truth in the fitted frame at the first filter step)",
         "tables": nrmse_tables(
             [*records, *reference_records(records, prior)], ranges,
             [*(v.label for v in variants if v.estimate_parameters), *REFERENCES],
