@@ -22,6 +22,7 @@ from vistac.recording import RunRecorder, prepare_out_dir
 from vistac.run import RunContext, SimClock
 from vistac.skill import Skill
 from vistac.tree import build_tree
+from vistac.types import GaussianBelief
 
 log = logging.getLogger(__name__)
 
@@ -192,12 +193,10 @@ def belief_truth(belief: dict[str, Any], truth: dict[str, Any]) -> dict[str, flo
     the belief puts it at the end; other entries (``f_j_k``) by name. Without the belief's
     or the true link poses, entries compare by name."""
     parameters: dict[str, float] = truth["parameters"]
-    n_belief = sum(1 for name in belief if name.startswith("m_"))
+    n_belief = GaussianBelief.link_count(belief)
     if "link_poses" not in truth or not all(f"theta_{b}" in belief for b in range(n_belief)):
         return dict(parameters)
-    frames = np.array(
-        [[belief[f"{key}_{b}"]["mean"] for key in ("x", "y", "theta")] for b in range(n_belief)]
-    ).reshape(n_belief, 3)
+    frames = GaussianBelief.link_poses(belief, range(n_belief))
     link_poses = np.asarray(truth["link_poses"], dtype=np.float64).reshape(-1, 3)
     links = match_links(frames[:, :2], link_poses[:, :2])
     moved = com_in_frames(parameters, links, frames, link_poses)

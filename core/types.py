@@ -8,6 +8,7 @@ reading fails where it is produced, not three plugins later.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -414,6 +415,20 @@ class GaussianBelief:
             name: {"mean": float(m), "std": float(s)}
             for name, m, s in zip(self.names, self.mean, self.std, strict=True)
         }
+
+    @staticmethod
+    def link_count(entries: Mapping[str, object]) -> int:
+        """The links of a belief in ``as_dict`` form (one ``m_l`` entry per link)."""
+        return sum(1 for name in entries if name.startswith("m_"))
+
+    @staticmethod
+    def link_poses(entries: Mapping[str, Mapping[str, float]], links: Sequence[int]) -> FloatArray:
+        """The pose means of ``links`` of a belief in ``as_dict`` form: [len(links), 3] =
+        (x m, y m, theta rad)."""
+        return np.array(
+            [[entries[f"{key}_{link}"]["mean"] for key in ("x", "y", "theta")] for link in links],
+            dtype=np.float64,
+        ).reshape(len(links), 3)
 
     def correlation_dict(self, decimals: int = 4) -> dict[str, object]:
         """``{"names": [n], "matrix": [n][n]}``: the correlation of the entries (0 between an

@@ -57,6 +57,7 @@ from vistac.objects import (
     write_configurations,
 )
 from vistac.plugins.filters.component import Prior
+from vistac.types import GaussianBelief
 
 log = logging.getLogger(__name__)
 
@@ -312,13 +313,8 @@ def pose_change_errors(belief: np.ndarray, truth: np.ndarray) -> tuple[np.ndarra
 
 def belief_poses(steps: Sequence[dict[str, Any]], links: Sequence[int]) -> np.ndarray:
     """The filter's link poses [T, len(links), 3] from ``filter_steps`` entries."""
-    return np.array(
-        [
-            [[step[f"{k}_{b}"]["mean"] for k in ("x", "y", "theta")] for b in links]
-            for step in steps
-        ],
-        dtype=np.float64,
-    ).reshape(len(steps), len(links), 3)
+    poses = [GaussianBelief.link_poses(step, links) for step in steps]
+    return np.array(poses, dtype=np.float64).reshape(len(steps), len(links), 3)
 
 
 def tracking_errors(
@@ -361,10 +357,6 @@ def _steps_by_episode(steps: Sequence[dict[str, Any]]) -> dict[int, list[dict[st
     return grouped
 
 
-def _n_belief_links(belief: dict[str, Any]) -> int:
-    return sum(1 for name in belief if name.startswith("m_"))
-
-
 FirstPoses = tuple[np.ndarray, np.ndarray] | None
 """Belief [Lb, 3] and true [Lt, 3] link poses at the first filter step (:func:`first_poses`)."""
 
@@ -378,13 +370,13 @@ def first_poses(run_dir: Path, summary: dict[str, Any]) -> FirstPoses:
     first = steps[0]
     with np.load(run_dir / "episodes" / f"{int(first['episode']):04d}" / "data.npz") as data:
         true_pose = np.asarray(data["object_pose"][0], dtype=np.float64)
-    n_belief = _n_belief_links(summary.get("belief") or {})
+    n_belief = GaussianBelief.link_count(summary.get("belief") or {})
     return belief_poses([first], range(n_belief))[0], true_pose
 
 
 def run_links(summary: dict[str, Any], poses: FirstPoses) -> dict[int, int]:
     """Belief link -> true link, nearest at the first filter step (``poses``)."""
-    n_belief = _n_belief_links(summary.get("belief") or {})
+    n_belief = GaussianBelief.link_count(summary.get("belief") or {})
     n_true = len(summary["ground_truth"]["object"]["links"])
     if poses is None or n_belief == n_true == 1:
         return {b: b for b in range(min(n_belief, n_true))}
@@ -673,7 +665,7 @@ def score_run(run_dir: Path) -> dict[str, Any]:
     history = [parameter_pairs(b, truth, links) for b in summary.get("belief_history", [])]
     return {
         "links": {str(b): t for b, t in links.items()},
-        "belief_links": _n_belief_links(summary.get("belief") or {}),
+        "belief_links": GaussianBelief.link_count(summary.get("belief") or {}),
         "interactions": len(summary.get("episodes", [])),
         "parameters": parameter_pairs(summary.get("belief") or {}, truth, links),
         "normalised_errors": normalised_errors(summary.get("belief") or {}, truth, links),
