@@ -10,12 +10,14 @@ from typing import Any
 import numpy as np
 import pytest
 from vistac.cli import main
+from vistac.errors import DataError
 from vistac.objects import generate_configurations, object_from_dict
 from vistac.plugins.filters.component import Prior
 from vistac.plugins.filters.evaluate import (
     EvalOptions,
     calibration_table,
     chosen_variants,
+    first_poses,
     log_score,
     match_links,
     normalised_errors,
@@ -484,3 +486,12 @@ def test_reference_columns_score_the_prior_and_a_known_product() -> None:
     assert (known["m_0"][0], known["f_0"][0]) == product_posterior_mean(truth_m * truth_f)
     tables = nrmse_tables([*records, *references], RANGES, ["A-GNN", "Prior", "m·f known"])
     assert list(tables["homogeneous"]["push"]) == ["A-GNN", "Prior", "m·f known"]
+
+
+def test_a_run_without_its_episode_data_is_a_clear_error(tmp_path: Path) -> None:
+    """Scoring a finished run whose episode data went missing names the file and the fix."""
+    summary = {"filter_steps": [{"episode": 0, "time_s": 0.0}], "belief": {}}
+    (tmp_path / "episodes" / "0000").mkdir(parents=True)
+    with pytest.raises(DataError, match=r"0000/data.npz: no object_pose .*delete .* to run it"):
+        first_poses(tmp_path, summary)
+    assert first_poses(tmp_path, {"filter_steps": []}) is None  # no steps: nothing to score

@@ -317,6 +317,18 @@ def belief_poses(steps: Sequence[dict[str, Any]], links: Sequence[int]) -> np.nd
     return np.array(poses, dtype=np.float64).reshape(len(steps), len(links), 3)
 
 
+def episode_true_poses(run_dir: Path, episode: int) -> np.ndarray:
+    """The true link poses [T, L, 3] (x m, y m, theta rad) of one episode of a run."""
+    path = run_dir / "episodes" / f"{episode:04d}" / "data.npz"
+    try:
+        with np.load(path) as data:
+            return np.asarray(data["object_pose"], dtype=np.float64)
+    except (OSError, KeyError) as error:
+        raise DataError(
+            f"{path}: no object_pose ({error}); delete {run_dir} to run it again"
+        ) from None
+
+
 def tracking_errors(
     run_dir: Path, summary: dict[str, Any], links: dict[int, int]
 ) -> dict[str, float]:
@@ -328,12 +340,7 @@ def tracking_errors(
     positions: list[np.ndarray] = []
     angles: list[np.ndarray] = []
     for index, steps in _steps_by_episode(summary.get("filter_steps", [])).items():
-        path = run_dir / "episodes" / f"{index:04d}" / "data.npz"
-        try:
-            with np.load(path) as data:
-                truth = np.asarray(data["object_pose"], dtype=np.float64)
-        except (OSError, KeyError) as error:
-            raise DataError(f"{path}: no object_pose ({error})") from None
+        truth = episode_true_poses(run_dir, index)
         count = min(len(steps), len(truth))
         if count < 1 or not links:
             continue
@@ -368,8 +375,7 @@ def first_poses(run_dir: Path, summary: dict[str, Any]) -> FirstPoses:
     if not steps:
         return None
     first = steps[0]
-    with np.load(run_dir / "episodes" / f"{int(first['episode']):04d}" / "data.npz") as data:
-        true_pose = np.asarray(data["object_pose"][0], dtype=np.float64)
+    true_pose = episode_true_poses(run_dir, int(first["episode"]))[0]
     n_belief = GaussianBelief.link_count(summary.get("belief") or {})
     return belief_poses([first], range(n_belief))[0], true_pose
 
