@@ -61,6 +61,27 @@ def test_segment_keeps_the_object_standing_on_the_table(processor: Open3dCloudPr
     assert segmented[:, 2].min() > 0.004, "table points were left in"
 
 
+
+def test_object_cluster_keeps_a_link_seen_apart_but_not_the_gripper_or_a_far_object() -> None:
+    """One view shows two links 20 mm apart (their joint hidden), the gripper above and an
+    object 0.3 m away: both links are the object, and only they; without joining, the
+    largest cluster (one link) alone."""
+    rng = np.random.default_rng(7)
+    link_a = box_points(rng, (0.0, 0.45))
+    link_b = box_points(rng, (0.12, 0.45))[::2]  # 19 mm apart; the smaller cluster
+    gripper = box_points(rng, (0.05, 0.45), z0=0.12)
+    far = box_points(rng, (0.4, 0.45))[::3]
+    points = np.concatenate([link_a, link_b, gripper, far])
+    points = points[points[:, 2] > 0.006]
+    expected = np.concatenate([link_a, link_b])
+    expected = expected[expected[:, 2] > 0.006]
+    kept = preprocess.object_cluster(points, points[:, 2], 0.012, 10, 0.1, join_m=0.03)
+    assert len(kept) == len(expected)
+    np.testing.assert_array_equal(np.sort(kept, axis=0), np.sort(expected, axis=0))
+    largest = preprocess.object_cluster(points, points[:, 2], 0.012, 10, 0.1)
+    assert len(largest) == np.count_nonzero(link_a[:, 2] > 0.006)
+
+
 def test_segment_merges_each_registered_views_object_clustered_once(
     processor: Open3dCloudProcessor, monkeypatch: pytest.MonkeyPatch
 ) -> None:

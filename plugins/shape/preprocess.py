@@ -124,10 +124,14 @@ def object_cluster(
     radius_m: float,
     min_points: int,
     max_base_height_m: float,
+    join_m: float = 0.0,
 ) -> FloatArray:
-    """The points [K, 3] of the largest DBSCAN cluster that reaches down to within
-    ``max_base_height_m`` of the table: not the gripper hovering above the objects. (Not
-    "touching the table": seen over a gripper, an object may show its top face only.)
+    """The object's points [K, 3]: the largest DBSCAN cluster that reaches down to within
+    ``max_base_height_m`` of the table (not the gripper hovering above the objects; not
+    "touching the table": seen over a gripper, an object may show its top face only), with
+    every other such cluster that comes within ``join_m`` of it. A view may show a link apart
+    from the rest (the joint hidden behind a taller link); the largest cluster alone would
+    drop it from that view.
 
     points_m: [N, 3]; height_m: [N] height of each point above the table plane. Returns an
     empty array when no cluster qualifies."""
@@ -143,7 +147,13 @@ def object_cluster(
     size[base_m > max_base_height_m] = 0
     if size.max() == 0:
         return points_m[:0]
-    return points_m[labels == size.argmax()]
+    keep = np.arange(len(size)) == size.argmax()
+    if join_m > 0:
+        largest = cKDTree(points_m[labels == size.argmax()])
+        for other in np.flatnonzero((size > 0) & ~keep):
+            gap_m, _ = largest.query(points_m[labels == other], distance_upper_bound=join_m)
+            keep[other] = bool(np.isfinite(gap_m).any())
+    return points_m[clustered & keep[np.maximum(labels, 0)]]
 
 
 def estimate_normals(points_m: FloatArray, radius_m: float) -> FloatArray:
@@ -183,7 +193,8 @@ class Open3dCloudProcessor(Component):
     Each view is cut down to what lies above its RANSAC table plane (the plane is fitted on a
     random subset, the cut is done on all points), voxel-downsampled, and registered onto the
     object points of the previous views; its object is its largest DBSCAN cluster standing on
-    the table, and ``segment`` merges those of the registered views.
+    the table with the clusters near it (``cluster_join_m``), and ``segment`` merges those of
+    the registered views.
     """
 
     kind = "cloud_processor"
@@ -198,6 +209,11 @@ class Open3dCloudProcessor(Component):
         ransac_iterations: int = Field(200, gt=0)
         cluster_radius_m: float = Field(0.012, gt=0, description="DBSCAN neighbourhood radius")
         cluster_min_points: int = Field(10, gt=0, description="DBSCAN core point neighbours")
+        cluster_join_m: float = Field(
+            0.03, ge=0, description="clusters standing on the table within this distance of "
+            "the largest are the object too (a link a view shows apart from the rest, its "
+            "joint hidden behind a taller link); 0: the largest cluster only",
+        )
         min_object_points: int = Field(50, gt=0, description="fewer object points: error")
         max_base_height_m: float = Field(
             0.1,
@@ -240,7 +256,8 @@ class Open3dCloudProcessor(Component):
 
     def segment(self, cloud: PointCloud) -> PointCloud:
         """The object's points: above the table, downsampled, the largest cluster standing on
-        the table (of each registered view, merged, when ``cloud`` is their merge); DataError
+        the table and those near it (:func:`object_cluster`; of each registered view, merged,
+        when ``cloud`` is their merge); DataError
         when fewer than ``min_object_points`` remain (e.g. a cloud that is all table)."""
         points = finite_points(cloud, "shape.open3d_cloud")
         config = self.config
@@ -264,7 +281,7 @@ class Open3dCloudProcessor(Component):
         height_m = above_m[:, 2] if plane is None else above_m @ plane[:3] + plane[3]
         return object_cluster(
             above_m, height_m, config.cluster_radius_m, config.cluster_min_points,
-            config.max_base_height_m,
+            config.max_base_height_m, config.cluster_join_m,
         )  # fmt: skip
 
     def _icp(self, source: FloatArray) -> FloatArray | None:
