@@ -61,9 +61,8 @@ def test_segment_keeps_the_object_standing_on_the_table(processor: Open3dCloudPr
     assert segmented[:, 2].min() > 0.004, "table points were left in"
 
 
-
 def test_object_cluster_keeps_a_link_seen_apart_but_not_the_gripper_or_a_far_object() -> None:
-    """One view shows two links 20 mm apart (their joint hidden), the gripper above and an
+    """One view shows two links 19 mm apart (their joint hidden), the gripper above and an
     object 0.3 m away: both links are the object, and only they; without joining, the
     largest cluster (one link) alone."""
     rng = np.random.default_rng(7)

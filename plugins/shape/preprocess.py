@@ -147,11 +147,12 @@ def object_cluster(
     size[base_m > max_base_height_m] = 0
     if size.max() == 0:
         return points_m[:0]
-    keep = np.arange(len(size)) == size.argmax()
+    largest = size.argmax()
+    keep = np.arange(len(size)) == largest
     if join_m > 0:
-        largest = cKDTree(points_m[labels == size.argmax()])
+        tree = cKDTree(points_m[labels == largest])
         for other in np.flatnonzero((size > 0) & ~keep):
-            gap_m, _ = largest.query(points_m[labels == other], distance_upper_bound=join_m)
+            gap_m, _ = tree.query(points_m[labels == other], distance_upper_bound=join_m)
             keep[other] = bool(np.isfinite(gap_m).any())
     return points_m[clustered & keep[np.maximum(labels, 0)]]
 
@@ -257,8 +258,8 @@ class Open3dCloudProcessor(Component):
     def segment(self, cloud: PointCloud) -> PointCloud:
         """The object's points: above the table, downsampled, the largest cluster standing on
         the table and those near it (:func:`object_cluster`; of each registered view, merged,
-        when ``cloud`` is their merge); DataError
-        when fewer than ``min_object_points`` remain (e.g. a cloud that is all table)."""
+        when ``cloud`` is their merge); DataError when fewer than ``min_object_points`` remain
+        (e.g. a cloud that is all table)."""
         points = finite_points(cloud, "shape.open3d_cloud")
         config = self.config
         if self._view_objects:
