@@ -88,6 +88,12 @@ def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
         if "peak_tactile_force_n" in episode:
             text += f", peak force {episode['peak_tactile_force_n']:.2f} N"
         lines.append(text)
+    for blocked in summary.get("blocked_actions", []):
+        (x, y), z = blocked["point_m"], blocked["blocked_at_m"][2]
+        lines.append(
+            f"  not carried out: {blocked['kind']} at ({x:.3f}, {y:.3f}) m, direction "
+            f"{blocked['pd_rad'] * 57.2958:.0f} deg, its way down blocked at {z:.3f} m height"
+        )
     if summary.get("shape"):
         lines += _shape_lines(summary["shape"], summary.get("shape_errors") or {})
     if summary.get("touch_errors"):

@@ -168,11 +168,14 @@ class ShapeEstimator(Protocol):
 @dataclass(frozen=True)
 class Scene:
     """What the robot knows before it acts: the observed cloud (world frame, table included),
-    the shape estimate when there is one, and the current belief when there is one."""
+    the shape estimate when there is one, and the current belief when there is one.
+    blocked_xy_m [K, 2]: the action points (world, m) of actions whose way down to the object
+    was blocked since the last interaction (see ``Executor``); choosers keep away from them."""
 
     cloud: PointCloud
     shape: ShapeEstimate | None = None
     belief: GaussianBelief | None = None
+    blocked_xy_m: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @runtime_checkable
@@ -219,7 +222,11 @@ class Episode:
 
 @runtime_checkable
 class Executor(Protocol):
-    """Turns a push or pull into arm and gripper commands, one control period per call."""
+    """Turns a push or pull into arm and gripper commands, one control period per call.
+
+    Optionally an executor has ``blocked_at_m``: where (x, y, z) it found its way to the
+    action blocked and backed off before the interaction, or None. ``execute_action`` then
+    records no episode and the next ``choose_action`` avoids the spot."""
 
     def start(self, action: Action) -> None: ...
 

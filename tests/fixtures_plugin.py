@@ -1,5 +1,6 @@
 """Test doubles registered as a plugin (``-p fixtures_plugin``): an arm that records stop
-calls, behaviours that count, fail or raise, and a toy filter with a known answer."""
+calls, behaviours that count, fail or raise, a toy filter with a known answer and a selector
+that first sends the fingers down on the object."""
 
 from __future__ import annotations
 
@@ -185,10 +186,40 @@ class ScalarKalmanFilter(Component):
         return GaussianBelief(np.array([self.mean]), np.array([[self.var]]), self.names)
 
 
+class OntoTheObjectFirst(Component):
+    """A selector whose first choice is the first candidate push moved ``inward_m`` along its
+    direction, so that the fingers come down on the object; later it takes the candidate
+    nearest the scene's first blocked point (the first candidate when there is none)."""
+
+    kind = "action_selector"
+
+    class Config(ComponentConfig):
+        inward_m: float = 0.035
+
+    def __init__(self, config: Config, ctx: Any) -> None:
+        super().__init__(config, ctx)
+        self.config: OntoTheObjectFirst.Config = config
+        self.calls = 0
+
+    def select(self, candidates: Any, scene: Scene, rng: np.random.Generator) -> Any:
+        self.calls += 1
+        first = candidates[0]
+        if self.calls > 1:
+            if not len(scene.blocked_xy_m):
+                return first
+            points = np.array([action.cp_m for action in candidates])
+            gaps_m = np.linalg.norm(points - scene.blocked_xy_m[0], axis=1)
+            return candidates[int(gaps_m.argmin())]
+        heading = np.array([np.cos(first.pd_rad), np.sin(first.pd_rad)])
+        return Push(first.cp_m + self.config.inward_m * heading, first.pd_rad, first.speed_mps,
+                    first.duration_s, link=first.link)  # fmt: skip
+
+
 @hookimpl
 def vistac_register(registry: Any) -> None:
     module = __name__
     registry.add("arm", "test.arm", f"{module}:RecordingArm")
+    registry.add("action_selector", "test.onto_object_first", f"{module}:OntoTheObjectFirst")
     registry.add("filter", "test.kalman", f"{module}:ScalarKalmanFilter")
     for name, cls in {
         "count": "Count",

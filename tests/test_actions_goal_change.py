@@ -165,6 +165,24 @@ def test_icem_keeps_the_fingers_off_the_other_links(tmp_path: Path) -> None:
         wide.plan(Scene(one_link.cloud, two), goal, np.random.default_rng(0))
 
 
+def test_icem_keeps_its_first_push_away_from_a_blocked_one(tmp_path: Path) -> None:
+    """The best push towards a goal straight ahead starts behind the box; once a push there
+    was blocked on its way down (the scene's blocked_xy_m), the plan starts elsewhere, at
+    least ``avoid_blocked_m`` away; where every push is that near, it fails naming it."""
+    goal = np.array([0.06, 0.45, 0.0])
+    shape = _box_shape((0.0, 0.45))
+    options = {"iterations": 4, "population": 48, "horizon_pushes": 1}
+    first = _controller(tmp_path, (0.0, 0.45, 0.0), **options)
+    best = first.plan(Scene(shape.cloud, shape), goal, np.random.default_rng(0))
+    blocked = Scene(shape.cloud, shape, blocked_xy_m=best.cp_m[None])
+    again = _controller(tmp_path, (0.0, 0.45, 0.0), **options)
+    push = again.plan(blocked, goal, np.random.default_rng(0))
+    assert np.linalg.norm(push.cp_m - best.cp_m) > again.config.avoid_blocked_m
+    everywhere = _controller(tmp_path, (0.0, 0.45, 0.0), avoid_blocked_m=0.2, **options)
+    with pytest.raises(DataError, match="avoid_blocked_m"):
+        everywhere.plan(blocked, goal, np.random.default_rng(0))
+
+
 def test_icem_rejects_a_bad_goal_and_a_skill_without_a_filter(tmp_path: Path) -> None:
     controller = _controller(tmp_path, (0.0, 0.45, 0.0))
     scene = Scene(PointCloud(np.zeros((1, 3))), _box_shape((0.0, 0.45)))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, cast
 
@@ -308,6 +309,32 @@ def test_explore_push_runs_with_each_process_model(tmp_path: Path, model: str) -
     local = (np.cos(theta) * dx + np.sin(theta) * dy, -np.sin(theta) * dx + np.cos(theta) * dy)
     assert (told["com_x_0"], told["com_y_0"]) == pytest.approx(local)
     assert summary["errors"]["com_x_0"] == pytest.approx(abs(belief["com_x_0"]["mean"] - local[0]))
+
+
+def test_a_push_blocked_on_its_way_down_is_not_carried_out_and_another_is_chosen(
+    tmp_path: Path, cli: Callable[..., tuple[int, str, str]]
+) -> None:
+    """The first push's fingers come down on the object: the arm lifts off, no episode is
+    recorded, the belief is not updated, and the next choice keeps ``avoid_blocked_m``
+    away although the selector asks for the candidate nearest the blocked one."""
+    out = tmp_path / "run"
+    code, stdout, stderr = cli(
+        "run", str(SKILLS / "explore_push.yaml"), "--out", str(out),
+        "--set", "tree.sequence.1.repeat.max=2",
+        "--set", "tree.sequence.1.repeat.do.0={choose_action: {avoid_blocked_m: 0.04}}",
+        "--set", "components.planner={plugin: test.onto_object_first, with: {inward_m: 0.03}}",
+    )  # fmt: skip
+    assert code == 0, stderr
+    summary = cast(dict[str, Any], _summary(out))
+    (blocked,) = summary["blocked_actions"]
+    assert blocked["blocked_at_m"][2] > 0.04, "stopped on the object's top (50 mm high)"
+    (episode,) = summary["episodes"]
+    assert episode["index"] == blocked["episode"] == 0
+    gap_m = np.linalg.norm(np.subtract(episode["action"]["point_m"], blocked["point_m"]))
+    assert gap_m > 0.04
+    assert len(summary["belief_history"]) == 1
+    assert len(list((out / "episodes").iterdir())) == 1
+    assert "not carried out: push at" in stdout
 
 
 def test_a_corrupt_checkpoint_is_a_clear_error(tmp_path: Path) -> None:

@@ -24,10 +24,13 @@ DT_S = 1.0 / 15.0
 PUSH_UP = Push(cp_m=np.array([0.0, 0.405]), pd_rad=math.pi / 2, speed_mps=0.02)
 
 
-def execute(ctx: TestContext, action: Action, tcp_z_m: list[float] | None = None) -> np.ndarray:
-    """Run ``action`` to the end; returns the tactile forces [T, 2, 2] of the interaction
-    (and appends the TCP height of each of its steps to ``tcp_z_m``)."""
-    executor: CartesianExecutor = ctx.add(CartesianExecutor)
+def execute(
+    ctx: TestContext, action: Action, tcp_z_m: list[float] | None = None, **options: Any
+) -> np.ndarray:
+    """Run ``action`` to the end with a CartesianExecutor of ``options``; returns the tactile
+    forces [T, 2, 2] of the interaction (and appends the TCP height of each of its steps to
+    ``tcp_z_m``)."""
+    executor: CartesianExecutor = ctx.add(CartesianExecutor, **options)
     world: MujocoWorld = ctx.find("world")
     executor.start(action)
     forces: list[np.ndarray] = []
@@ -62,18 +65,40 @@ def test_push_moves_box_along_pd_and_force_matches_coulomb(tmp_path: Path) -> No
     assert abs(total[0]) < 0.05
 
 
-def test_a_descent_onto_the_object_is_stopped_as_blocked(tmp_path: Path) -> None:
-    """A push whose pre-contact point lies on the box (the believed pose is off) must not
-    press the fingers into it until the workspace floor: the stalled descent stops the arm."""
+ON_TOP = Push(cp_m=np.array([0.0, 0.47]), pd_rad=math.pi / 2, speed_mps=0.02)
+"""A push whose pre-contact point lies on the box: the believed pose is off."""
+
+
+def test_a_descent_onto_the_object_fails_as_blocked_when_told_to(tmp_path: Path) -> None:
+    """The fingers must not press into the box until the workspace floor: the stalled
+    descent stops the arm, and with ``on_blocked_descent: fail`` the action fails."""
     ctx = sim_setup(tmp_path, box_object())
     world = ctx.find("world")
-    on_top = Push(cp_m=np.array([0.0, 0.47]), pd_rad=math.pi / 2, speed_mps=0.02)
     with pytest.raises(HardwareError, match=r"'descend' move is blocked at .* something in"):
-        execute(ctx, on_top)
+        execute(ctx, ON_TOP, on_blocked_descent="fail")
     np.testing.assert_array_equal(world.data.ctrl[world.index.arm_actuators], 0.0)
     x, y, _ = world.link_poses()[0]
     assert abs(x) < 1e-3 and abs(y - 0.45) < 1e-3, "the object was not shoved"
     assert ctx.find("arm").state().pose[2] > 0.03, "the fingers stayed on the box"
+
+
+def test_a_blocked_descent_lifts_the_arm_off_and_parks_it_without_an_interaction(
+    tmp_path: Path,
+) -> None:
+    ctx = sim_setup(tmp_path, box_object())
+    world = ctx.find("world")
+    assert len(execute(ctx, ON_TOP)) == 0, "no interaction step"
+    blocked_at = ctx.find("executor").blocked_at_m
+    # Stopped over the pre-contact point (20 mm behind the contact point), on the box's top.
+    np.testing.assert_allclose(blocked_at[:2], [0.0, 0.45], atol=0.003)
+    assert 0.05 < blocked_at[2] < 0.08
+    park = CartesianExecutor.Config().park_pose
+    assert park is not None
+    np.testing.assert_allclose(ctx.find("arm").state().pose, park, atol=0.003)
+    x, y, _ = world.link_poses()[0]
+    assert abs(x) < 1e-3 and abs(y - 0.45) < 1e-3, "the object was not shoved"
+    ctx.find("executor").start(PUSH_UP)  # the next action starts afresh
+    assert ctx.find("executor").blocked_at_m is None
 
 
 def test_heavier_object_needs_more_force(tmp_path: Path) -> None:

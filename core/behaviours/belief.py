@@ -26,7 +26,8 @@ DEFAULT_MAX_STD = {"m_*": 0.05, "f_j_*": 0.03, "f_*": 0.03, "com_*": 0.005}
 
 
 class UpdateBelief(SkillBehaviour):
-    """Feed the last episode to the filter. The summary gets ``belief`` (the latest),
+    """Feed the last episode to the filter (none, when the action was not carried out:
+    nothing to do). The summary gets ``belief`` (the latest),
     ``belief_history`` (one per interaction) and, from filters that keep one
     (``step_history()``), ``filter_steps``: the belief at every control step. (A NaN belief
     cannot be built: GaussianBelief rejects it, which stops the run with the arm stopped.)"""
@@ -39,8 +40,12 @@ class UpdateBelief(SkillBehaviour):
         filter: str = "filter"
 
     def update(self) -> Status:
+        episode = self.read("episode")
+        if episode is None:  # the action was not carried out (execute_action says why)
+            log.info("update_belief: no interaction since the last update; belief unchanged")
+            return Status.SUCCESS
         filter_ = self.component("filter")
-        belief = filter_.update(self.read("episode"))
+        belief = filter_.update(episode)
         self.write("belief", belief)
         record_belief(self.run.results, belief)
         self.run.results.setdefault("belief_history", []).append(belief.as_dict())

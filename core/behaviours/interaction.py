@@ -58,12 +58,32 @@ def action_region(action: Action, region_xy_m: FloatArray, top_m: float) -> Floa
     )
 
 
+BLOCKED_KEY = "blocked_xy_m"
+"""Blackboard: the action points [K, 2] (world, m) of the actions whose way down was blocked
+since the last interaction (``Scene.blocked_xy_m``)."""
+
+
+def blocked_points(behaviour: SkillBehaviour) -> FloatArray:
+    """The blocked action points [K, 2] on the blackboard (none yet: [0, 2])."""
+    return np.asarray(behaviour.read(BLOCKED_KEY, np.zeros((0, 2))), dtype=np.float64)
+
+
+def episode_rng(behaviour: SkillBehaviour, stream: str, blocked: FloatArray) -> np.random.Generator:
+    """The run's generator for ``stream`` at this episode; a fresh one for each retry after
+    an action was blocked (blocked [K, 2], as :func:`blocked_points`)."""
+    assert behaviour.run is not None
+    retry = f"/retry{len(blocked)}" if len(blocked) else ""
+    return behaviour.run.rng(f"{stream}/{behaviour.run.episode_count}{retry}")
+
+
 class ChooseAction(SkillBehaviour):
     """Sample candidate actions and select one. With a filter in the skill, the belief is
-    initialised from the scene the first time. Writes ``action`` (and ``belief``)."""
+    initialised from the scene the first time. Candidates within ``avoid_blocked_m`` of an
+    action whose way down was blocked since the last interaction are dropped. Writes
+    ``action`` (and ``belief``)."""
 
     reads = ("cloud",)
-    optional_reads = ("shape", "belief")
+    optional_reads = ("shape", "belief", BLOCKED_KEY)
     writes = ("action", "belief")
     role_fields = {"sampler": "action_sampler", "selector": "action_selector", "filter": "filter"}
     optional_roles = ("filter",)
@@ -72,20 +92,25 @@ class ChooseAction(SkillBehaviour):
         sampler: str = "affordances"
         selector: str = "planner"
         filter: str = "filter"
+        avoid_blocked_m: float = Field(
+            0.02, ge=0, description="candidates whose contact or grasp point lies this near "
+            "that of an action blocked on its way down (since the last interaction) are dropped",
+        )
 
     @classmethod
     def blackboard_writes(cls, config: Config, roles: dict[str, str]) -> set[str]:
         return {"action"} | ({"belief"} if config.filter in roles else set())
 
     def update(self) -> Status:
-        scene = Scene(self.read("cloud"), self.read("shape"), self.read("belief"))
+        blocked = blocked_points(self)
+        scene = Scene(self.read("cloud"), self.read("shape"), self.read("belief"), blocked)
         filter_ = self.component("filter")
         if filter_ is not None and scene.belief is None:
             belief = filter_.initialise(scene)
             self.write("belief", belief)
             self.run.hook.vistac_belief(run=self.run.info, belief=belief)
-            scene = Scene(scene.cloud, scene.shape, belief)
-        rng = self.run.rng(f"choose_action/{self.run.episode_count}")
+            scene = Scene(scene.cloud, scene.shape, belief, blocked)
+        rng = episode_rng(self, "choose_action", blocked)
         candidates = self.component("sampler").sample(scene, rng)
         if not candidates:
             raise DataError(
@@ -93,6 +118,7 @@ class ChooseAction(SkillBehaviour):
                 f"{self.config.sampler!r} component dropped every candidate; check its "
                 "workspace and clearance options (a warning above may say which)"
             )
+        candidates = self._away_from(blocked, candidates)
         action = self.component("selector").select(candidates, scene, rng)
         self.write("action", action)
         self.run.hook.vistac_action(
@@ -100,15 +126,38 @@ class ChooseAction(SkillBehaviour):
         )
         return Status.SUCCESS
 
+    def _away_from(self, blocked: FloatArray, candidates: list[Action]) -> list[Action]:
+        """The candidates farther than ``avoid_blocked_m`` from every blocked point [K, 2]."""
+        if not len(blocked):
+            return candidates
+        points = np.array([action_point(action) for action in candidates])
+        gaps_m = np.linalg.norm(points[:, None] - blocked[None], axis=-1).min(axis=1)
+        far = gaps_m > self.config.avoid_blocked_m
+        kept = [action for action, keep in zip(candidates, far, strict=True) if keep]
+        if not kept:
+            raise DataError(
+                f"choose_action: every candidate lies within avoid_blocked_m "
+                f"({self.config.avoid_blocked_m} m) of the {len(blocked)} action(s) whose way "
+                "down was blocked; the object's believed pose or shape is off. Look again, or "
+                "lower avoid_blocked_m"
+            )
+        log.info("choose_action: %d of %d candidates kept away from %d blocked spot(s)",
+                 len(kept), len(candidates), len(blocked))  # fmt: skip
+        return kept
+
 
 class ExecuteAction(SkillBehaviour):
     """Carry out ``action`` through the executor, one control period per tick (RUNNING
     until done). During the interaction proper, record per period the tactile forces, the
-    arm state, a depth image and, in simulation, the true link poses. Writes ``episode``."""
+    arm state, a depth image and, in simulation, the true link poses. Writes ``episode``.
+    An action the executor backed off from before the interaction (its way down blocked,
+    ``blocked_at_m``) records no episode: ``episode`` is None, the summary's
+    ``blocked_actions`` lists it and its point joins ``blocked_xy_m`` until the next
+    interaction."""
 
     reads = ("action",)
-    optional_reads = ("shape", "object_cloud", "belief")
-    writes = ("episode",)
+    optional_reads = ("shape", "object_cloud", "belief", BLOCKED_KEY)
+    writes = ("episode", BLOCKED_KEY)
     role_fields = {"executor": "executor", "arm": "arm", "tactile": "tactile", "camera": "camera"}
     optional_roles = ("camera",)
 
@@ -151,7 +200,11 @@ class ExecuteAction(SkillBehaviour):
         phase, self.observing = self.component("executor").step(self.run.period_s)
         if phase != "done":
             return Status.RUNNING
-        self._finish()
+        blocked_at_m = getattr(self.component("executor"), "blocked_at_m", None)
+        if blocked_at_m is None:
+            self._finish()
+        else:
+            self._drop(np.asarray(blocked_at_m, dtype=np.float64))
         return Status.SUCCESS
 
     def terminate(self, new_status: Status) -> None:
@@ -201,7 +254,28 @@ class ExecuteAction(SkillBehaviour):
             observation=step,
         )
 
+    def _drop(self, blocked_at_m: FloatArray) -> None:
+        """The executor backed off at blocked_at_m [3]: no episode; remember the spot."""
+        point = action_point(self.action)
+        self.write(BLOCKED_KEY, np.vstack([blocked_points(self), point]))
+        self.write("episode", None)
+        self.run.results.setdefault("blocked_actions", []).append(
+            {
+                "episode": self.episode.index,
+                "kind": self.action.kind,
+                "point_m": point.tolist(),
+                "pd_rad": float(self.action.pd_rad),
+                "blocked_at_m": blocked_at_m.tolist(),
+            }
+        )
+        log.warning(
+            "episode %d: the %s at (%.3f, %.3f) m was not carried out, its way down blocked "
+            "at %.3f m height (the object's believed pose or shape is off); choosing another",
+            self.episode.index, self.action.kind, *point, blocked_at_m[2],
+        )  # fmt: skip
+
     def _finish(self) -> None:
+        self.write(BLOCKED_KEY, np.zeros((0, 2)))
         world = self.run.world_if_built()
         truth = world.ground_truth() if world is not None else None
         path = self.run.recorder.save_episode(self.episode, truth)

@@ -23,6 +23,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -38,6 +39,8 @@ _MIN_COMMANDED_M = 0.002
 """The stall check skips windows in which less than this was commanded (at the waypoint)."""
 _YAW_M_PER_RAD = 0.05
 """Yaw counted as distance in the stall check (a turn in place is progress)."""
+_RECOVERABLE_MOVES = ("approach", "descend")
+"""Moves before the fingers are meant to touch anything: blocked, the arm can back off."""
 
 
 def _move_metric(position_m: FloatArray, yaw_rad: float) -> float:
@@ -94,6 +97,11 @@ class CartesianExecutor(Component):
         """A move that gets less than half as much nearer its waypoint as it was commanded
         to move over this long is blocked: the arm stops and the action fails (for example a
         descent onto the object when the believed pose is off)."""
+        on_blocked_descent: Literal["lift", "fail"] = "lift"
+        """A blocked ``approach`` or ``descend`` (the object where the fingers were to come
+        down: its believed pose or shape is off): ``lift`` the arm back to the approach
+        height, park it and end the action without an interaction (``blocked_at_m``), so
+        that the skill can choose another; or ``fail`` the action, the arm stopped."""
         gripper_timeout_s: float = Field(default=5.0, gt=0.0)
         park_pose: tuple[float, float, float, float] | None = (0.0, 0.25, 0.12, 0.0)
         """Where the TCP waits after an action (x, y, z m, yaw rad), out of the cameras'
@@ -113,6 +121,9 @@ class CartesianExecutor(Component):
         self._target = np.zeros(4)
         self._stall_window: _StallWindow | None = None
         self._dt_s = 0.0
+        self.blocked_at_m: FloatArray | None = None
+        """Where (x, y, z, m) the TCP stopped when the last action's approach or descent
+        was blocked and the arm backed off (``on_blocked_descent: lift``); else None."""
 
     # -- Executor protocol ----------------------------------------------------------------
 
@@ -121,6 +132,7 @@ class CartesianExecutor(Component):
             self._push_phases(action) if isinstance(action, Push) else self._pull_phases(action)
         )
         self._index, self._entered = 0, False
+        self.blocked_at_m = None
         log.debug("executing %s: %s", action.kind, [p.name for p in self._phases])
 
     def step(self, dt_s: float) -> tuple[str, bool]:
@@ -161,8 +173,7 @@ class CartesianExecutor(Component):
             self._move_phase("approach", lambda pose: (*pre_xy, self._safe_z, push.pd_rad)),
             self._move_phase("descend", lambda pose: (*pre_xy, self._finger_z, pose[3])),
             self._interact_phase("push", direction, push.speed_mps, push.duration_s),
-            self._move_phase("retreat", lambda pose: (pose[0], pose[1], self._safe_z, pose[3])),
-            *self._park_phases(),
+            *self._retreat_phases(),
         ]
 
     def _pull_phases(self, pull: Pull) -> list[_Phase]:
@@ -178,9 +189,13 @@ class CartesianExecutor(Component):
             self._gripper_phase("grasp", self.gripper.close, check_grasp=True),
             self._interact_phase("pull", direction, pull.speed_mps, pull.duration_s),
             self._gripper_phase("release", self.gripper.open),
-            self._move_phase("retreat", lambda pose: (pose[0], pose[1], self._safe_z, pose[3])),
-            *self._park_phases(),
+            *self._retreat_phases(),
         ]
+
+    def _retreat_phases(self) -> list[_Phase]:
+        """Straight up to the approach height, then to the park pose."""
+        up = self._move_phase("retreat", lambda pose: (pose[0], pose[1], self._safe_z, pose[3]))
+        return [up, *self._park_phases()]
 
     def _park_phases(self) -> list[_Phase]:
         park = self.config.park_pose
@@ -231,13 +246,23 @@ class CartesianExecutor(Component):
             self._stall_window = _StallWindow(self._elapsed_s, distance_m)
 
     def _blocked(self, name: str, error: FloatArray, progress_m: float, commanded_m: float) -> None:
+        """Stop the arm; back off (``on_blocked_descent: lift``) or raise HardwareError."""
+        self.arm.stop()
+        at_m = self._target[:3] - error[:3]
+        what = (
+            f"the {name!r} move is blocked at ({at_m[0]:.3f}, {at_m[1]:.3f}, {at_m[2]:.3f}) m: "
+            f"it got {progress_m * 1e3:.1f} mm nearer its waypoint in {self.config.stall_s} s "
+            f"while commanded {commanded_m * 1e3:.1f} mm"
+        )
+        if name in _RECOVERABLE_MOVES and self.config.on_blocked_descent == "lift":
+            log.warning("executor: %s; lifting the arm off, the action is not carried out", what)
+            self.blocked_at_m = at_m
+            self._phases, self._index, self._entered = self._retreat_phases(), 0, False
+            return
         self.abort()
-        x, y, z = self._target[:3] - error[:3]
         raise HardwareError(
-            f"executor: the {name!r} move is blocked at ({x:.3f}, {y:.3f}, {z:.3f}) m: it got "
-            f"{progress_m * 1e3:.1f} mm nearer its waypoint in {self.config.stall_s} s while "
-            f"commanded {commanded_m * 1e3:.1f} mm; the arm is stopped. Is something in the "
-            "way? (a push whose start lies on the object: the believed pose is off)"
+            f"executor: {what}; the arm is stopped. Is something in the way? (a push whose "
+            "start lies on the object: the believed pose is off)"
         )
 
     def _at_target(self) -> bool:

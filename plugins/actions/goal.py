@@ -18,6 +18,7 @@ import numpy as np
 from py_trees.common import Status
 from pydantic import Field
 from vistac.behaviours.belief import record_belief
+from vistac.behaviours.interaction import BLOCKED_KEY, blocked_points, episode_rng
 from vistac.component import ComponentConfig
 from vistac.errors import ConfigError, DataError
 from vistac.plugins.actions.icem import wrap_angle
@@ -67,7 +68,7 @@ class PlanPush(SkillBehaviour):
     located by the last look (:func:`located_belief`)."""
 
     reads = ("cloud",)
-    optional_reads = ("shape", "belief")
+    optional_reads = ("shape", "belief", BLOCKED_KEY)
     writes = ("action", "goal", "belief")
     role_fields = {"controller": "controller", "filter": "filter"}
 
@@ -80,20 +81,20 @@ class PlanPush(SkillBehaviour):
         look_std_m: float | None = _LOOK_STD_FIELD
 
     def update(self) -> Status:
-        belief = self.read("belief")
-        scene = Scene(self.read("cloud"), self.read("shape"), belief)
+        belief, blocked = self.read("belief"), blocked_points(self)
+        scene = Scene(self.read("cloud"), self.read("shape"), belief, blocked)
         if belief is None:
             belief = self.component("filter").initialise(scene)
             self.write("belief", belief)
         else:
             belief = located_belief(self, self.config.look_std_m)
-        scene = Scene(scene.cloud, scene.shape, belief)
+        scene = Scene(scene.cloud, scene.shape, belief, blocked)
         record = self.run.results.get("goal_push")
         if record is None:
             record = self._start_record(belief)
         x, y, turn = self.config.goal
         goal = np.array([x, y, record["start_belief_pose"][2] + turn])
-        rng = self.run.rng(f"plan_push/{self.run.episode_count}")
+        rng = episode_rng(self, "plan_push", blocked)
         action = self.component("controller").plan(scene, goal, rng)
         self.write("goal", goal)
         self.write("action", action)

@@ -110,6 +110,10 @@ class ICEMController(Component):
             "fingers' corner descends 3 mm from a flat face it pushes)",
         )
         max_cloud_points_under_fingers: int | None = CLOUD_POINTS_FIELD
+        avoid_blocked_m: float = Field(
+            0.02, ge=0, description="a first push whose contact point lies this near that of "
+            "a push blocked on its way down (the scene's blocked_xy_m) is infeasible",
+        )
 
         @model_validator(mode="after")
         def _bounds(self) -> ICEMController.Config:
@@ -152,14 +156,14 @@ class ICEMController(Component):
         link0 = self.filter.layout.link_pose(self.filter.belief.mean)[0, :3].numpy()
         outline = _OutlineInLink(scene.shape, link0, self._link_outline)
         with torch.inference_mode():  # rollouts only: no autograd bookkeeping at all
-            best, cost = self._optimise(outline, goal, rng, self._obstacles(scene.shape))
+            best, cost = self._optimise(outline, goal, rng, self._obstacles(scene))
         self.last_cost = cost
         if cost >= _INFEASIBLE_COST:
             raise DataError(
-                "actions.icem: every planned first push would start out of the arm's reach "
-                "or bring the fingers down on the object (approach_clearance_m, "
-                "finger_clearance_m, max_cloud_points_under_fingers); move the goal or the "
-                "object"
+                "actions.icem: every planned first push would start out of the arm's reach, "
+                "bring the fingers down on the object or start where a push was blocked "
+                "(approach_clearance_m, finger_clearance_m, max_cloud_points_under_fingers, "
+                "avoid_blocked_m); move the goal or the object"
             )
         first = self._pushes(outline, best[None, 0], None)[0][0]
         log.info(
@@ -175,14 +179,19 @@ class ICEMController(Component):
             self._outline = (link, *link_outline(link, _OUTLINE_POINTS))
         return self._outline[1], self._outline[2]
 
-    def _obstacles(self, shape: ShapeEstimate) -> _Obstacles:
-        """Where the fingers must not come down, as the last look saw the object."""
+    def _obstacles(self, scene: Scene) -> _Obstacles:
+        """Where the fingers must not come down, as the last look saw the object, and the
+        pushes blocked on their way down since the last interaction."""
+        shape = scene.shape
+        assert shape is not None
         cloud_xy = np.asarray(shape.cloud.points_m, dtype=np.float64)[:, :2]
         margin_m = 2.0 * self.config.finger_clearance_m
         along_m, across_m = self.config.finger_footprint_m
         return _Obstacles(
             shape, cloud_xy[~inside_any_link(shape.links, cloud_xy)],
             (along_m + margin_m, across_m + margin_m), self.config.max_cloud_points_under_fingers,
+            np.asarray(scene.blocked_xy_m, dtype=np.float64).reshape(-1, 2),
+            self.config.avoid_blocked_m,
         )  # fmt: skip
 
     # -- iCEM -------------------------------------------------------------------------------
@@ -264,8 +273,7 @@ class ICEMController(Component):
             pushes, starts = self._pushes(outline, samples[:, step], states)
             infeasible = np.any((starts < low) | (starts > high), axis=1)
             if step == 0:  # the push carried out: after the mean, a penalty of its own
-                headings = np.array([push.pd_rad for push in pushes])
-                infeasible = (infeasible | obstacles.blocked(starts, headings)) * horizon
+                infeasible = (infeasible | obstacles.blocked(pushes, starts)) * horizon
             costs += infeasible * _INFEASIBLE_COST
             states = self.filter.predict_states(pushes, self.config.rate_hz, states)
             costs += self._goal_distance(states, goal)
@@ -301,18 +309,28 @@ class ICEMController(Component):
 class _Obstacles:
     """The fitted links and the object cloud's points no link covers (what the fit missed),
     cloud_xy [P, 2], found once per plan: the check runs for every sample of every
-    iteration. size_m: the finger footprint grown by the clearance."""
+    iteration. size_m: the finger footprint grown by the clearance. blocked_xy [K, 2]: the
+    contact points of pushes blocked on their way down, kept ``avoid_m`` away from."""
 
     shape: ShapeEstimate
     cloud_xy: FloatArray
     size_m: tuple[float, float]
     max_cloud_points: int | None
+    blocked_xy: FloatArray
+    avoid_m: float
 
-    def blocked(self, starts_xy: FloatArray, headings_rad: FloatArray) -> FloatArray:
-        """Whether fingers descending at starts_xy [N, 2] along headings_rad [N] would come
-        down on the object (``fingers_blocked``): bool [N]."""
-        return fingers_blocked(self.shape, self.cloud_xy, starts_xy, headings_rad, self.size_m,
-                               self.max_cloud_points)  # fmt: skip
+    def blocked(self, pushes: list[Push], starts_xy: FloatArray) -> FloatArray:
+        """Whether the fingers of ``pushes`` descending at starts_xy [N, 2] would come down
+        on the object (``fingers_blocked``) or the push starts where one was blocked: bool
+        [N]."""
+        headings = np.array([push.pd_rad for push in pushes])
+        on_object = fingers_blocked(self.shape, self.cloud_xy, starts_xy, headings, self.size_m,
+                                    self.max_cloud_points)  # fmt: skip
+        if not len(self.blocked_xy):
+            return on_object
+        points = np.array([push.cp_m for push in pushes])
+        gaps_m = np.linalg.norm(points[:, None] - self.blocked_xy[None], axis=-1).min(axis=1)
+        return np.asarray(on_object | (gaps_m <= self.avoid_m))
 
 
 class _OutlineInLink:
