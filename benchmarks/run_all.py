@@ -2,6 +2,8 @@
 
 Usage: python benchmarks/run_all.py [--out BENCHMARKS.md] [--repeats N]
                                    [--train-report DIR/train.json ...]
+
+Without --train-report, the training section of the existing output file is kept.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import Row
+from training_report import HEADING as TRAINING_HEADING
 from training_report import render as render_training
 from vistac.allocator import keep_freed_memory
 
@@ -63,6 +66,15 @@ def render(rows: list[Row], repeats: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+def kept_training(out: Path) -> str:
+    """The training section of an earlier ``out`` (from its heading on), or ''.
+
+    Without ``--train-report``, a rerun keeps the training rows it cannot measure itself."""
+    text = out.read_text(encoding="utf-8") if out.is_file() else ""
+    start = text.find(f"\n{TRAINING_HEADING}")
+    return text[start:] if start >= 0 else ""
+
+
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--out", type=Path, default=Path("BENCHMARKS.md"))
@@ -82,7 +94,8 @@ def main() -> int:
     for name in MODULES:
         print(f"running {name} ...", flush=True)
         rows += importlib.import_module(name).run(args.repeats)
-    text = render(rows, args.repeats) + render_training(args.train_report)
+    training = render_training(args.train_report) or kept_training(args.out)
+    text = render(rows, args.repeats) + training
     args.out.write_text(text)
     print(text)
     return 0

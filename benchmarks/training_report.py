@@ -64,13 +64,17 @@ def training_lines(path: Path) -> list[str]:
     return lines
 
 
+HEADING = "## Training"
+"""The section's heading starts so (``run_all`` keeps an earlier section by it)."""
+
+
 def render(paths: list[Path]) -> str:
     """The training section for the reports at ``paths`` ("" for none)."""
     if not paths:
         return ""
     header = [
         "",
-        "## Training (from `vistac train` reports, not rerun by `make bench`)",
+        f"{HEADING} (from `vistac train` reports, not rerun by `make bench`)",
         "",
         "| run | interaction | model | hidden | trajectories (train / val) | wall time | epochs |",
         "|---|---|---|---|---|---|---|",

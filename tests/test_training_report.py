@@ -55,3 +55,15 @@ def test_a_missing_report_is_a_clear_error_before_any_benchmark(tmp_path: Path) 
     assert result.returncode == 2
     assert "no such train.json" in result.stderr and "vistac train" in result.stderr
     assert not (tmp_path / "B.md").exists()
+
+
+def test_a_rerun_without_reports_keeps_the_earlier_training_section(tmp_path: Path) -> None:
+    from run_all import kept_training
+
+    out = tmp_path / "B.md"
+    assert kept_training(out) == ""
+    section = render([_report(tmp_path)])
+    out.write_text("# Benchmarks\n\n| old rows |\n" + section, encoding="utf-8")
+    assert kept_training(out) == section
+    out.write_text("# Benchmarks\n\n| no training |\n", encoding="utf-8")
+    assert kept_training(out) == ""
