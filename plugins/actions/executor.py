@@ -95,8 +95,8 @@ class CartesianExecutor(Component):
         move_timeout_s: float = Field(default=60.0, gt=0.0)
         stall_s: float = Field(default=0.5, gt=0.0)
         """A move that gets less than half as much nearer its waypoint as it was commanded
-        to move over this long is blocked: the arm stops and the action fails (for example a
-        descent onto the object when the believed pose is off)."""
+        to move over this long is blocked: the arm stops (for example on a descent onto the
+        object when the believed pose is off), then ``on_blocked_descent`` says what next."""
         on_blocked_descent: Literal["lift", "fail"] = "lift"
         """A blocked ``approach`` or ``descend`` (the object where the fingers were to come
         down: its believed pose or shape is off): ``lift`` the arm back to the approach
