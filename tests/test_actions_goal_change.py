@@ -23,6 +23,7 @@ from vistac.plugins.filters.component import (
 from vistac.plugins.filters.dual import Belief, modality_log_likelihoods
 from vistac.plugins.filters.state import DTYPE, StateLayout
 from vistac.protocols import Scene
+from vistac.testing import build_components
 from vistac.types import GaussianBelief, PointCloud, Push, ShapeEstimate, Superquadric
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -181,6 +182,31 @@ def test_icem_keeps_its_first_push_away_from_a_blocked_one(tmp_path: Path) -> No
     everywhere = _controller(tmp_path, (0.0, 0.45, 0.0), avoid_blocked_m=0.2, **options)
     with pytest.raises(DataError, match="avoid_blocked_m"):
         everywhere.plan(blocked, goal, np.random.default_rng(0))
+
+
+def test_the_look_ahead_starts_a_push_where_the_executor_does(tmp_path: Path) -> None:
+    """predict_states pushes as the executor does: the pad starts ``standoff_m`` before the
+    contact point, so a larger standoff leaves the object that much shorter (a central push
+    of a box with the analytical model: no turn)."""
+    moved_m, box = [], str(ROOT / "skills/objects/rect1.yaml")
+    for standoff_m in (0.01, 0.03):
+        components = {
+            "world": {"plugin": "sim.mujoco", "with": {"object": box}},
+            "arm": {"plugin": "sim.arm"},
+            "gripper": {"plugin": "sim.gripper"},
+            "executor": {"plugin": "actions.cartesian", "with": {"standoff_m": standoff_m}},
+            "model": {"plugin": "filters.analytical"},
+            "filter": {"plugin": "filters.dual"},
+        }  # fmt: skip
+        filter_ = build_components(components, tmp_path / str(standoff_m)).component("filter")
+        shape = _box_shape((0.0, 0.45))
+        filter_.initialise(Scene(shape.cloud, shape))
+        push = Push(np.array([0.0, 0.405]), math.pi / 2, 0.02, duration_s=4.0)
+        x, y, theta = filter_.layout.link_pose(filter_.predict_states([push], 15.0))[0, 0, :3]
+        assert abs(float(x)) < 1e-6 and abs(float(theta)) < 1e-6
+        moved_m.append(float(y) - 0.45)
+    assert 0.06 < moved_m[0] < 0.08  # 80 mm of travel, the first 10 mm before contact
+    assert moved_m[0] - moved_m[1] == pytest.approx(0.02, abs=5e-4)
 
 
 def test_icem_rejects_a_bad_goal_and_a_skill_without_a_filter(tmp_path: Path) -> None:

@@ -496,8 +496,9 @@ class DualFilterComponent(Component):
 
         states: [B, n] at rest before the actions (default: the current belief mean, twist
         zeroed); actions: B pushes or pulls, each carried out for its ``duration_s`` at
-        ``rate_hz`` from its action point as in ``predict_beliefs``. Returns the states
-        [B, n] at the end of each action (float64).
+        ``rate_hz`` as the executor carries it out: a push from the executor's ``standoff_m``
+        before contact (the pad travels that far before it touches the object), a pull from
+        its grasp point. Returns the states [B, n] at the end of each action (float64).
         """
         if self.belief is None or self.layout is None or self.shape is None:
             raise DataError("filters.dual: predict_states before initialise")
@@ -510,7 +511,7 @@ class DualFilterComponent(Component):
         at_rest[layout.pose_slice] = torch.tensor([1.0, 1, 1, 0, 0, 0]).repeat(layout.n_links)
         states = (states * at_rest).unsqueeze(-2)  # [B, 1, n]
         poses = layout.link_pose(states[:, 0]).numpy()[:, :, :3]
-        motion = self._action_motion(actions, poses)
+        motion = self._action_motion(actions, poses, standoff=True)
         steps = [round(a.duration_s * rate_hz) for a in actions]
         dt_s = 1.0 / rate_hz
         params = states[..., layout.parameter_slice]
@@ -524,15 +525,21 @@ class DualFilterComponent(Component):
             states = states[:, 0] * at_rest
         return states.clone()  # a normal tensor again
 
-    def _action_motion(self, actions: Sequence[Action], poses: FloatArray) -> _ActionMotion:
-        """The gripper's straight motion during each action, with links [B, L, 3] at rest."""
+    def _action_motion(
+        self, actions: Sequence[Action], poses: FloatArray, standoff: bool = False
+    ) -> _ActionMotion:
+        """The gripper's straight motion during each action, with links [B, L, 3] at rest: a
+        push's pad starts at its contact point, or with ``standoff`` the executor's
+        ``standoff_m`` before it."""
         assert self.shape is not None
         batch = len(actions)
         points = np.array([action_point(action) for action in actions]).reshape(batch, 2)
         headings = np.array([[np.cos(a.pd_rad), np.sin(a.pd_rad)] for a in actions])
         executor_config = getattr(self.ctx.find("executor"), "config", None)
-        default_m = CartesianExecutor.Config().pusher_offset_m
-        offset_m = float(getattr(executor_config, "pusher_offset_m", default_m))
+        defaults = CartesianExecutor.Config()
+        offset_m = float(getattr(executor_config, "pusher_offset_m", defaults.pusher_offset_m))
+        if standoff:
+            offset_m += float(getattr(executor_config, "standoff_m", defaults.standoff_m))
         is_pull = np.array([isinstance(action, Pull) for action in actions])
         _, sizes = link_boxes(self.shape)
         links = [
