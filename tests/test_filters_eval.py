@@ -330,7 +330,8 @@ def test_plan_runs_sets_model_and_selector_per_variant(tmp_path: Path) -> None:
     artic = ROOT / "skills/objects/artic_rect_rect.yaml"
     options = EvalOptions(
         skill=ROOT / "skills/explore_push.yaml", out=tmp_path, checkpoints=folder,
-        max_interactions=2, overrides=("components.filter.with.sigma_points=16",),
+        max_interactions=2, overrides=("components.filter.with.sigma_points=16",
+                                       "components.model.with.mirror_average=true"),
     )  # fmt: skip
     plans = plan_runs(options, [rect2, artic], "push")
     assert [(p.spec.name, p.variant.label) for p in plans] == [
@@ -352,13 +353,16 @@ def test_plan_runs_sets_model_and_selector_per_variant(tmp_path: Path) -> None:
     uniform = 'components.planner={"plugin": "actions.uniform"}'
     random = 'components.planner={"plugin": "actions.random"}'
     analytical = 'components.model={"plugin": "filters.analytical"}'
+    gnn, ff, analytical = (  # the user's model option refines each variant's model
+        [model, "components.model.with.mirror_average=true"] for model in (gnn, ff, analytical)
+    )
     expected = [
-        [*common, gnn, info_gain],
-        [*common, gnn, uniform],
-        [*common, gnn, random],
-        [*common, ff, info_gain],
-        [*common, analytical, info_gain],
-        [*common, gnn, random, "components.filter.with.estimate_parameters=false"],
+        [*common, *gnn, info_gain],
+        [*common, *gnn, uniform],
+        [*common, *gnn, random],
+        [*common, *ff, info_gain],
+        [*common, *analytical, info_gain],
+        [*common, *gnn, random, "components.filter.with.estimate_parameters=false"],
     ]
     assert [p.overrides for p in plans[:6]] == expected
     assert all(p.skipped is None for p in plans[:6])

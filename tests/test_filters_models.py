@@ -21,6 +21,7 @@ from vistac.plugins.filters.analytical import (
     characteristic_length_m,
     quasi_static_push,
 )
+from vistac.plugins.filters.mirror import reflect_poses, reflect_scene
 from vistac.plugins.filters.models import (
     AnalyticalProcessModel,
     FFProcessModel,
@@ -632,3 +633,58 @@ def test_pusher_moving_away_does_not_push() -> None:
     )
     assert float(result.velocity_mps.abs().sum()) == 0.0
     assert float(result.force_n.abs().sum()) == 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Mirror averaging
+
+
+def test_the_reflection_about_the_push_line_is_an_involution_with_known_images() -> None:
+    states, inputs = scenario((2,), 2)
+    inputs = ProcessInput(inputs.tcp, torch.full((2,), 0.4, dtype=DTYPE), inputs.is_pull,
+                          inputs.link, inputs.link_size_m, inputs.link_offset)  # fmt: skip
+    mirrored, mirrored_inputs = reflect_scene(states, inputs)
+    back, back_inputs = reflect_scene(mirrored, mirrored_inputs)
+    torch.testing.assert_close(back, states, rtol=0, atol=1e-15)
+    torch.testing.assert_close(back_inputs.tcp, inputs.tcp, rtol=0, atol=1e-15)
+    # pd 0.4 rad through the TCP: a point on the line stays, one off it lands across it.
+    layout, tcp = StateLayout(2), inputs.tcp[0, :2]
+    along = torch.tensor([math.cos(0.4), math.sin(0.4)], dtype=DTYPE)
+    across = torch.tensor([-math.sin(0.4), math.cos(0.4)], dtype=DTYPE)
+    pose = torch.zeros(1, 1, 6, dtype=DTYPE)
+    pose[0, 0, :3] = torch.cat([tcp + 0.1 * along + 0.02 * across, torch.tensor([0.4 + 0.3])])
+    pose[0, 0, 3:] = torch.cat([0.01 * across, torch.tensor([0.2])])
+    image = reflect_poses(pose, tcp, torch.tensor(0.4, dtype=DTYPE))[0, 0]
+    torch.testing.assert_close(image[:2], tcp + 0.1 * along - 0.02 * across)
+    torch.testing.assert_close(image[2], torch.tensor(0.4 - 0.3, dtype=DTYPE))
+    torch.testing.assert_close(image[3:5], -0.01 * across)
+    assert float(image[5]) == pytest.approx(-0.2)
+    com_y = [layout.index(f"com_y_{link}") for link in range(2)]
+    torch.testing.assert_close(mirrored[..., com_y], -states[..., com_y])
+    torch.testing.assert_close(mirrored_inputs.link_offset[..., 1:], -inputs.link_offset[..., 1:])
+
+
+@pytest.mark.parametrize("name", ["gnn", "ff"])
+def test_mirror_averaged_predictions_are_mirror_symmetric(name: str, tmp_path: Path) -> None:
+    """With ``mirror_average`` the prediction of the reflected scene is the reflection of the
+    prediction (a plain net's is not); the force is reflected too."""
+    states, inputs = scenario((), 2)
+    inputs = ProcessInput(inputs.tcp, torch.tensor(0.3, dtype=DTYPE), inputs.is_pull,
+                          inputs.link, inputs.link_size_m, inputs.link_offset)  # fmt: skip
+    mirrored, mirrored_inputs = reflect_scene(states, inputs)
+    cls, options = (GNNProcessModel, {}) if name == "gnn" else (FFProcessModel, {"n_links": 2})
+    angle = inputs.pd_rad.unsqueeze(-1)
+
+    @torch.no_grad()
+    def asymmetry(model: Any) -> tuple[float, float]:
+        direct = model.predict(states, inputs, DT_S)
+        other = model.predict(mirrored, mirrored_inputs, DT_S)
+        back = reflect_poses(other.pose.unflatten(-1, (2, 6)), inputs.tcp[:2], inputs.pd_rad)
+        force = rotate(other.force_n * torch.tensor([1.0, -1.0], dtype=DTYPE), 2 * angle)
+        return (float((back.flatten(-2) - direct.pose).abs().max()),
+                float((force - direct.force_n).abs().max()))  # fmt: skip
+
+    plain = asymmetry(build(cls, tmp_path / "plain", hidden=16, **options))
+    averaged = asymmetry(build(cls, tmp_path / "mirror", hidden=16, mirror_average=True, **options))
+    assert plain[0] > 1e-4 and plain[1] > 1e-4
+    assert averaged[0] < 1e-12 and averaged[1] < 1e-12

@@ -595,11 +595,17 @@ def model_override(model: str, spec: ObjectSpec, folder: Path, kind: str) -> tup
     return "components.model=" + json.dumps({"plugin": f"filters.{model}", "with": settings}), ""
 
 
+MODEL_OPTION_PREFIX = "components.model.with."
+"""``--set`` overrides of the process model's options (applied to every variant's model)."""
+
+
 def plan_runs(options: EvalOptions, objects: Sequence[Path], kind: str) -> list[RunPlan]:
     """Every (object, variant) run with its ``--set`` overrides or its skip reason."""
     folder = options.checkpoints or options.skill.parent / "checkpoints"
     skill_data = read_skill(options.skill)
-    common = list(options.overrides)
+    # The variant sets the whole model; the user's options of it refine that, after it.
+    model_options = [o for o in options.overrides if o.startswith(MODEL_OPTION_PREFIX)]
+    common = [o for o in options.overrides if not o.startswith(MODEL_OPTION_PREFIX)]
     noise = folder / f"obs_noise_{kind}.pt"
     if noise.is_file():
         common.append(f"components.filter.with.noise_checkpoint={noise.resolve()}")
@@ -616,7 +622,7 @@ def plan_runs(options: EvalOptions, objects: Sequence[Path], kind: str) -> list[
             else:
                 planner = planner_override(variant.selector, skill_data)
                 plan.overrides = [*common, f"components.world.with.object={path.resolve()}",
-                                  model, planner]  # fmt: skip
+                                  model, *model_options, planner]  # fmt: skip
                 if not variant.estimate_parameters:
                     plan.overrides.append("components.filter.with.estimate_parameters=false")
             plans.append(plan)

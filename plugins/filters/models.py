@@ -22,6 +22,7 @@ from torch import Tensor, nn
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
 from vistac.errors import ConfigError, ConfigIssue, DataError
 from vistac.plugins.filters.analytical import PushSettings, analytical_prediction
+from vistac.plugins.filters.mirror import mirror_averaged
 from vistac.plugins.filters.nets import MLP, FeedForwardProcessNet, GraphProcessNet, layout_of
 from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput
 
@@ -145,6 +146,19 @@ def _weights(net: nn.Module) -> list[Tensor]:
     return [*net.parameters(), *net.buffers()]
 
 
+class LearnedModelConfig(ComponentConfig):
+    """The options of every learned process model."""
+
+    checkpoint: SkillPath | None = None
+    """State dict from ``save_checkpoint``; None = fresh weights seeded by the skill."""
+    hidden: int = Field(default=64, ge=4, le=1024)
+    mirror_average: bool = Field(
+        False, description="average each prediction with the reflected prediction of the scene "
+        "reflected about the push line (vistac.plugins.filters.mirror): mirror-symmetric "
+        "predictions, at the cost of a batch twice as large",
+    )
+
+
 class _LearnedProcessModel(Component):
     """Shared behaviour of the learned process models: seeded construction, checkpoints,
     float32 look-aheads."""
@@ -174,6 +188,8 @@ class _LearnedProcessModel(Component):
 
     def predict(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
         """states [..., C, n] -> Prediction (see ``vistac.plugins.filters.state``)."""
+        if self.config.mirror_average:
+            return mirror_averaged(self.net, states, inputs, dt_s)
         prediction: Prediction = self.net(states, inputs, dt_s)
         return prediction
 
@@ -190,7 +206,10 @@ class _LearnedProcessModel(Component):
         if self._copy is None or not self._copy.matches(self.net):
             self._copy = _LookAheadCopy(self.net)
             log.debug("%s: float32 look-ahead copy of the net made", self.plugin)
-        return functools.partial(self._copy.net, **self._look_ahead_options)
+        forward = functools.partial(self._copy.net, **self._look_ahead_options)
+        if self.config.mirror_average:
+            return functools.partial(mirror_averaged, forward)
+        return forward
 
     def save_checkpoint(self, path: str | Path) -> None:
         """Write the state dict to ``path`` and the architecture to ``<path>.json``."""
@@ -208,10 +227,8 @@ class GNNProcessModel(_LearnedProcessModel):
     plugin = "filters.gnn"
     n_links = None
 
-    class Config(ComponentConfig):
-        checkpoint: SkillPath | None = None
-        """State dict from ``save_checkpoint``; None = fresh weights seeded by the skill."""
-        hidden: int = Field(default=64, ge=4, le=1024)
+    class Config(LearnedModelConfig):
+        pass
 
     config: Config
     _look_ahead_options: ClassVar[dict[str, Any]] = {"with_force": False, "reuse_inputs": True}
@@ -233,10 +250,7 @@ class FFProcessModel(_LearnedProcessModel):
 
     plugin = "filters.ff"
 
-    class Config(ComponentConfig):
-        checkpoint: SkillPath | None = None
-        """State dict from ``save_checkpoint``; None = fresh weights seeded by the skill."""
-        hidden: int = Field(default=64, ge=4, le=1024)
+    class Config(LearnedModelConfig):
         n_links: int = Field(default=1, ge=1, le=8)
 
     config: Config
