@@ -12,6 +12,7 @@ do the y and angle of each link's initial pose relative to link 0 (``link_offset
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import torch
@@ -62,9 +63,11 @@ def mirror_averaged(
     prediction of the reflected scene (one call on both, stacked in front). The process
     variance is the direct prediction's."""
     mirrored_states, mirrored_inputs = reflect_scene(states, inputs)
-    pairs = zip(_fields(inputs), _fields(mirrored_inputs), strict=True)
-    stacked = (torch.stack(pair) for pair in pairs)
-    both = forward(torch.stack([states, mirrored_states]), ProcessInput(*stacked), dt_s)
+    stacked = {
+        field.name: torch.stack([getattr(inputs, field.name), getattr(mirrored_inputs, field.name)])
+        for field in dataclasses.fields(ProcessInput)
+    }
+    both = forward(torch.stack([states, mirrored_states]), ProcessInput(**stacked), dt_s)
     n_links = layout_of(states).n_links
     direct = both.pose[0].unflatten(-1, (n_links, 6))
     back = reflect_poses(both.pose[1].unflatten(-1, (n_links, 6)), inputs.tcp[..., :2],
@@ -75,8 +78,3 @@ def mirror_averaged(
     angle = inputs.pd_rad[..., None]
     force_back = _reflect_xy(both.force_n[1], torch.cos(2.0 * angle), torch.sin(2.0 * angle))
     return Prediction(pose, 0.5 * (both.force_n[0] + force_back), both.process_var[0])
-
-
-def _fields(inputs: ProcessInput) -> tuple[Tensor, ...]:
-    return (inputs.tcp, inputs.pd_rad, inputs.is_pull, inputs.link, inputs.link_size_m,
-            inputs.link_offset)  # fmt: skip
