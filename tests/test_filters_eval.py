@@ -221,7 +221,9 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
     }  # fmt: skip
     cell = tables["tables"]["homogeneous"]["push"]
     assert list(cell) == ["A-GNN", "U-GNN", "A-Analytical", "Prior", "m·f known"]
-    truth = json.loads((out / "runs/rect2/a-gnn/summary.json").read_text())["ground_truth"]
+    first = json.loads((out / "runs/rect2/a-gnn/summary.json").read_text())
+    truth, started = first["ground_truth"], first["prior"]  # the belief the run started from
+    assert (started["m_0"]["mean"], started["com_x_0"]["std"]) == pytest.approx((0.9, 0.028))
     m_0 = truth["parameters"]["m_0"]  # the references are scored on the same object
     assert cell["Prior"]["m_0"] == pytest.approx(abs(0.9 - m_0) / 1.4)
     assert cell["m·f known"]["CoM_0"] == 0.0
@@ -490,6 +492,10 @@ def test_reference_columns_score_the_prior_and_a_known_product() -> None:
     assert (known["m_0"][0], known["f_0"][0]) == product_posterior_mean(truth_m * truth_f)
     tables = nrmse_tables([*records, *references], RANGES, ["A-GNN", "Prior", "m·f known"])
     assert list(tables["homogeneous"]["push"]) == ["A-GNN", "Prior", "m·f known"]
+    # A run whose summary kept the belief it started from is scored by that prior.
+    records[0]["prior"] = {"m_0": (0.7, truth_m), "f_0": (0.25, truth_f),
+                           "CoM_0": ((0.01, 0.0), (0.01, 0.03))}  # fmt: skip
+    assert reference_records(records, prior)[0]["parameters"] == records[0]["prior"]
 
 
 def test_a_run_without_its_episode_data_is_a_clear_error(tmp_path: Path) -> None:

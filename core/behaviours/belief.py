@@ -8,6 +8,7 @@ import logging
 from py_trees.common import Status
 from pydantic import Field
 from vistac.component import ComponentConfig
+from vistac.protocols import Scene
 from vistac.tree import SkillBehaviour
 from vistac.types import GaussianBelief
 
@@ -20,6 +21,17 @@ def record_belief(results: dict[str, object], belief: GaussianBelief) -> None:
     ``prior_from`` reads back."""
     results["belief"] = belief.as_dict()
     results["belief_correlation"] = belief.correlation_dict()
+
+
+def initial_belief(behaviour: SkillBehaviour, scene: Scene, filter_role: str) -> GaussianBelief:
+    """The filter's first belief about the scene's object: written to the blackboard, the
+    summary's ``prior`` (what the run started from; ``vistac eval`` scores it) and the
+    belief hook."""
+    belief: GaussianBelief = behaviour.component(filter_role).initialise(scene)
+    behaviour.write("belief", belief)
+    behaviour.run.results["prior"] = belief.as_dict()
+    behaviour.run.hook.vistac_belief(run=behaviour.run.info, belief=belief)
+    return belief
 
 
 DEFAULT_MAX_STD = {"m_*": 0.05, "f_j_*": 0.03, "f_*": 0.03, "com_*": 0.005}

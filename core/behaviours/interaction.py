@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 from py_trees.common import Status
 from pydantic import Field
+from vistac.behaviours.belief import initial_belief
 from vistac.component import ComponentConfig
 from vistac.errors import DataError
 from vistac.protocols import Episode, Scene, StepObservation
@@ -106,9 +107,7 @@ class ChooseAction(SkillBehaviour):
         scene = Scene(self.read("cloud"), self.read("shape"), self.read("belief"), blocked)
         filter_ = self.component("filter")
         if filter_ is not None and scene.belief is None:
-            belief = filter_.initialise(scene)
-            self.write("belief", belief)
-            self.run.hook.vistac_belief(run=self.run.info, belief=belief)
+            belief = initial_belief(self, scene, "filter")
             scene = Scene(scene.cloud, scene.shape, belief, blocked)
         rng = episode_rng(self, "choose_action", blocked)
         candidates = self.component("sampler").sample(scene, rng)

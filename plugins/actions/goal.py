@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from py_trees.common import Status
 from pydantic import Field
-from vistac.behaviours.belief import record_belief
+from vistac.behaviours.belief import initial_belief, record_belief
 from vistac.behaviours.interaction import BLOCKED_KEY, blocked_points, episode_rng
 from vistac.component import ComponentConfig
 from vistac.errors import ConfigError, DataError
@@ -84,8 +84,7 @@ class PlanPush(SkillBehaviour):
         belief, blocked = self.read("belief"), blocked_points(self)
         scene = Scene(self.read("cloud"), self.read("shape"), belief, blocked)
         if belief is None:
-            belief = self.component("filter").initialise(scene)
-            self.write("belief", belief)
+            belief = initial_belief(self, scene, "filter")
         else:
             belief = located_belief(self, self.config.look_std_m)
         scene = Scene(scene.cloud, scene.shape, belief, blocked)

@@ -266,8 +266,10 @@ REFERENCES: tuple[str, ...] = ("Prior", "m·f known")
 
 def reference_records(records: Sequence[dict[str, Any]], prior: Prior) -> list[dict[str, Any]]:
     """One record per object and interaction for each of :data:`REFERENCES`: the prior's
-    means, and an estimator that knows each link's CoM, the joint friction and the product
-    m f exactly (what the force of a quasi-static push shows) but not m and f apart."""
+    means (the run's own first belief where its summary has one, e.g. a CoM prior from the
+    fitted shape; else ``prior``'s), and an estimator that knows each link's CoM, the joint
+    friction and the product m f exactly (what the force of a quasi-static push shows) but
+    not m and f apart."""
     truths: dict[tuple[str, str], dict[str, Any]] = {}
     for record in records:
         if record["status"] == "ok" and record["estimate_parameters"]:
@@ -275,7 +277,8 @@ def reference_records(records: Sequence[dict[str, Any]], prior: Prior) -> list[d
     references = []
     for record in truths.values():
         base = {key: record[key] for key in ("object", "type", "kind")}
-        for label, pairs in zip(REFERENCES, (prior_pairs(record["parameters"], prior),
+        prior_means = record.get("prior") or prior_pairs(record["parameters"], prior)
+        for label, pairs in zip(REFERENCES, (prior_means,
                                              product_known_pairs(record["parameters"])),
                                 strict=True):  # fmt: skip
             references.append(base | {"variant": label, "status": "ok", "parameters": pairs})
@@ -680,6 +683,7 @@ def score_run(run_dir: Path) -> dict[str, Any]:
         "belief_links": GaussianBelief.link_count(summary.get("belief") or {}),
         "interactions": len(summary.get("episodes", [])),
         "parameters": parameter_pairs(summary.get("belief") or {}, truth, links),
+        "prior": parameter_pairs(summary["prior"], truth, links) if "prior" in summary else None,
         "normalised_errors": normalised_errors(summary.get("belief") or {}, truth, links),
         "history": history,
         "tracking": tracking_errors(run_dir, summary, links),
