@@ -23,6 +23,10 @@ SHORT_MODE: dict[str, list[str]] = yaml.safe_load((HERE / "short_mode.yaml").rea
 CASES = sorted(SKILLS.glob("*.yaml")) + sorted(HERE.glob("*.yaml"))
 CASES = [c for c in CASES if c.name != "short_mode.yaml"]
 DISPLACEMENT_TOL_M = 0.005
+"""For the first interaction; the k-th (from 0) gets k + 1 times this. Each push is chosen
+from the belief after all the earlier ones, so last-bit differences between CPUs compound
+(explore_active's fifth push moved the object 78 mm on one machine and 85 mm on another, the
+same code and seed). A push that misses or a stuck arm still fails by far more."""
 VIEWS_REL_TOL = 0.15
 """Each look's stop is a threshold on a float sum and the next eye an argmax, so last-bit
 differences (thread scheduling in torch and open3d) can move a look by one view; on a skill
@@ -60,10 +64,11 @@ def _compare(got: dict[str, Any], want: dict[str, Any]) -> None:
     assert abs(got["views"] - want["views"]) <= max(1, round(VIEWS_REL_TOL * want["views"]))
     assert got.get("touch_class") == want.get("touch_class")
     assert len(got["episodes"]) == len(want["episodes"])
-    for g, w in zip(got["episodes"], want["episodes"], strict=True):
+    for index, (g, w) in enumerate(zip(got["episodes"], want["episodes"], strict=True)):
         assert (g["kind"], g["steps"]) == (w["kind"], w["steps"])
         if w["displacement_m"] is not None:
-            assert g["displacement_m"] == pytest.approx(w["displacement_m"], abs=DISPLACEMENT_TOL_M)
+            tolerance_m = (index + 1) * DISPLACEMENT_TOL_M
+            assert g["displacement_m"] == pytest.approx(w["displacement_m"], abs=tolerance_m)
         if w["peak_force_n"] is not None:
             assert g["peak_force_n"] == pytest.approx(w["peak_force_n"], rel=FORCE_REL_TOL, abs=0.3)
 
