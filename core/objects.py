@@ -147,6 +147,15 @@ def polygon_area(polygon: FloatArray) -> float:
     return _polygon_area_centroid(polygon)[0]
 
 
+def polygon_centroid_covariance(polygon: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Mean [2] and covariance [2, 2] (m, m²) of a point drawn uniformly from a CCW polygon
+    [K, 2]: its area centroid and its second area moments about that centroid over its area."""
+    area, centroid = _polygon_area_centroid(polygon)
+    x2, y2, xy = polygon_second_moments(polygon) / area
+    about_origin = np.array([[x2, xy], [xy, y2]])
+    return centroid, about_origin - np.outer(centroid, centroid)
+
+
 def points_inside(polygon: FloatArray, points: FloatArray) -> NDArray[np.bool_]:
     """Which points [N, 2] lie strictly inside the convex CCW polygon [K, 2]. Returns [N]."""
     edges = np.roll(polygon, -1, axis=0) - polygon

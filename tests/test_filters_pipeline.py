@@ -14,7 +14,14 @@ from conftest import run_vistac
 from vistac.cli import build_parser, main
 from vistac.errors import ConfigError
 from vistac.objects import load_object
-from vistac.plugins.filters.component import DualFilterComponent, nearest_link, relative_poses
+from vistac.plugins.filters.component import (
+    DualFilterComponent,
+    Prior,
+    footprint_com,
+    nearest_link,
+    prior_belief,
+    relative_poses,
+)
 from vistac.plugins.filters.data import (
     central_twist,
     link_geometry,
@@ -255,6 +262,48 @@ def test_initial_belief_comes_from_the_shape_and_the_prior(tmp_path: Path) -> No
     assert values["x_0"] == 0.0 and values["y_0"] == 0.45
     assert values["m_0"] == pytest.approx(0.9) and stds["m_0"] == pytest.approx(0.4)
     assert values["f_0"] == pytest.approx(0.3) and stds["com_x_0"] == pytest.approx(0.028)
+    in_shape = {"plugin": "filters.dual", "with": {"prior": {"com_in_shape": True}}}
+    specs = {"model": {"plugin": "filters.gnn"}, "filter": in_shape}
+    shaped = build_components(specs, tmp_path).component("filter").initialise(
+        Scene(_box_shape().cloud, _box_shape())
+    )
+    values = dict(zip(shaped.names, shaped.mean, strict=True))
+    stds = dict(zip(shaped.names, shaped.std, strict=True))
+    # The CoM uniform over the fitted footprint: a near-rectangle of 90 x 112 mm.
+    assert abs(values["com_x_0"]) < 1e-4 and abs(values["com_y_0"]) < 1e-4
+    assert stds["com_x_0"] == pytest.approx(0.090 / 12**0.5, rel=0.03)
+    assert stds["com_y_0"] == pytest.approx(0.112 / 12**0.5, rel=0.03)
+
+
+def _standing_link(scale_m: list[float], exponents: list[float], taper: list[float],
+                   theta_rad: float) -> ShapeEstimate:  # fmt: skip
+    """One superquadric link at (0.1, 0.4) turned theta_rad, as a shape estimate."""
+    pose = np.eye(4)
+    pose[:2, :2] = [[np.cos(theta_rad), -np.sin(theta_rad)], [np.sin(theta_rad), np.cos(theta_rad)]]
+    pose[:3, 3] = [0.1, 0.4, 0.02]
+    link = Superquadric(np.array(scale_m), np.array(exponents), pose, np.array(taper))
+    return ShapeEstimate((link,), np.array([[0.1, 0.4, theta_rad]]), np.zeros((1, 14)),
+                         _box_shape().cloud)  # fmt: skip
+
+
+def test_the_com_prior_is_uniform_over_the_fitted_footprint() -> None:
+    """In the link's own frame, wherever it stands and however it is turned: an ellipse (a1,
+    a2) sheared by x += s y has covariance S diag(a1^2, a2^2) S' / 4, S = [[1, s], [0, 1]],
+    about its centre; a near-rectangle tapered linearly (x scaled by 1 + k y / a2) is a
+    trapezoid whose centroid lies k a2 / 3 towards its wide end."""
+    a1_m, a2_m, shear, taper = 0.03, 0.05, 0.4, 0.45
+    ellipse = _standing_link([a1_m, a2_m, 0.02], [1.0, 1.0], [0.0, 0.0, shear], 2.0)
+    mean_m, cov_m2 = footprint_com(ellipse)
+    stretch = np.array([[1.0, shear], [0.0, 1.0]])
+    expected = stretch @ np.diag([a1_m**2, a2_m**2]) @ stretch.T / 4
+    np.testing.assert_allclose(mean_m, np.zeros((1, 2)), atol=2e-5)
+    np.testing.assert_allclose(cov_m2[0], expected, rtol=2e-3, atol=1e-8)
+    trapezoid = _standing_link([a1_m, a2_m, 0.02], [0.1, 0.1], [taper, 0.0], -0.7)
+    np.testing.assert_allclose(footprint_com(trapezoid)[0], [[0.0, taper * a2_m / 3]], atol=5e-4)
+    layout = StateLayout(1)
+    belief = prior_belief(np.zeros((1, 6)), Prior(), layout, (mean_m, cov_m2))
+    block = [layout.index("com_x_0"), layout.index("com_y_0")]
+    np.testing.assert_allclose(belief.cov[block][:, block].numpy(), cov_m2[0])
 
 
 def test_filter_needs_a_process_model(tmp_path: Path) -> None:

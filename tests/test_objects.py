@@ -22,6 +22,7 @@ from vistac.objects import (
     object_from_dict,
     points_inside,
     polygon_area,
+    polygon_centroid_covariance,
     split_configurations,
     write_configurations,
 )
@@ -70,6 +71,20 @@ def test_footprint_size_orientation_and_centroid(name: str) -> None:
 
 def test_triangle_area_is_half_the_legs_product() -> None:
     assert polygon_area(footprint_polygon("tri2")) == pytest.approx(0.5 * 0.1512 * 0.126)
+
+
+def test_a_uniform_point_in_a_right_triangle_and_a_shifted_rectangle() -> None:
+    """Legs a, b: mean (a, b) / 3, variances a^2 / 18 and b^2 / 18, covariance -ab / 36; a
+    w x h rectangle: its centre and w^2 / 12, h^2 / 12."""
+    a, b = 0.12, 0.05
+    mean, cov = polygon_centroid_covariance(np.array([[0.0, 0.0], [a, 0.0], [0.0, b]]))
+    np.testing.assert_allclose(mean, [a / 3, b / 3])
+    np.testing.assert_allclose(cov, [[a * a / 18, -a * b / 36], [-a * b / 36, b * b / 18]])
+    w, h = 0.08, 0.03
+    corners = np.array([[0.2, -0.1], [0.2 + w, -0.1], [0.2 + w, -0.1 + h], [0.2, -0.1 + h]])
+    mean, cov = polygon_centroid_covariance(corners)
+    np.testing.assert_allclose(mean, [0.2 + w / 2, -0.1 + h / 2])
+    np.testing.assert_allclose(cov, np.diag([w * w / 12, h * h / 12]), atol=1e-15)
 
 
 def test_com_outside_footprint_is_rejected_with_its_path() -> None:
