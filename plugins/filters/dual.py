@@ -348,14 +348,15 @@ class ParameterFit(NamedTuple):
 
 def parameter_fit(parameters: Tensor, expected: Tensor) -> ParameterFit:
     """Fit ``expected`` [..., C, k] on ``parameters`` [..., C, p] (one [p, C] x [C, k] product:
-    the centred deviations make centring ``expected`` unnecessary). A tiny ridge keeps a
-    degenerate parameter block solvable."""
+    the centred deviations make centring ``expected`` unnecessary, and the Gram matrix is
+    solved against the deviations [p, C] before it, not against the [p, k] result). A tiny
+    ridge keeps a degenerate parameter block solvable."""
     deviation = parameters - parameters.mean(-2, keepdim=True)
     gram = deviation.mT @ deviation
     scale = gram.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-300)
     eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
     gram = gram + (1e-9 * scale)[..., None, None] * eye
-    return ParameterFit(deviation, gram, torch.linalg.solve(gram, deviation.mT @ expected))
+    return ParameterFit(deviation, gram, torch.linalg.solve(gram, deviation.mT) @ expected)
 
 
 def marginal_inverse_var(fit: ParameterFit, centred_sums: Tensor, noise_var: Tensor) -> Tensor:
