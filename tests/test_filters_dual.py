@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -865,3 +866,64 @@ def test_consumed_expected_observations_give_the_same_update() -> None:
             posteriors.append(dual.step(belief, make_inputs(), DT_S, observation, generator))
     torch.testing.assert_close(posteriors[0].mean, posteriors[1].mean.detach())
     torch.testing.assert_close(posteriors[0].cov, posteriors[1].cov.detach())
+
+
+def test_leaving_out_the_entries_no_point_varies_in_changes_nothing(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """A box seen from above in a 64 x 64 depth image plus two forces, the camera's noise on
+    every pixel: the update compares the points only where their expected observations
+    differ (a few hundred of 4098 entries), and its posterior and per-modality likelihoods
+    equal those of the update over every entry."""
+    from vistac.plugins.filters import dual as dual_module
+    from vistac.plugins.filters.observation import (
+        DepthProjector,
+        ObsNoiseNet,
+        ProjectionObservationModel,
+        observation_vector,
+    )
+    from vistac.testing import build_components
+    from vistac.types import CameraIntrinsics
+
+    torch.manual_seed(0)
+    axes = torch.linspace(-0.04, 0.04, 30), torch.linspace(-0.03, 0.03, 24)
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
+    points = torch.cat([grid.reshape(-1, 2), torch.full((720, 1), 0.05)], -1).to(DTYPE)
+    camera = np.array([[1.0, 0, 0, 0], [0, -1.0, 0, 0], [0, 0, -1.0, 0.5], [0, 0, 0, 1.0]])
+    projector = DepthProjector(
+        points, torch.zeros(720, dtype=torch.int64), torch.zeros(1, 3, dtype=DTYPE),
+        CameraIntrinsics(64, 64, 120.0, 120.0, 31.5, 31.5), camera,
+    )  # fmt: skip
+    model = ProjectionObservationModel(LAYOUT, projector, ObsNoiseNet())
+    gnn = {"plugin": "filters.gnn", "with": {"hidden": 16}}
+    process = build_components({"model": gnn}, tmp_path).component("model")
+    dual = DualFilter(LAYOUT, process, model, 40, push_load_only=True)
+    depth = projector.render(torch.tensor([[0.004, 0.0, 0.02]], dtype=DTYPE))
+    depth = depth + 0.002 * torch.randn(depth.shape, dtype=DTYPE)
+    observation = observation_vector(depth, torch.tensor([0.8, 0.1]), projector.background_m)
+    mean = torch.zeros(LAYOUT.size, dtype=DTYPE)
+    mean[6:] = torch.tensor([0.5, 0.3, 0.0, 0.0], dtype=DTYPE)
+    std = torch.tensor([0.004, 0.004, 0.05, 0.01, 0.01, 0.1, 0.2, 0.1, 0.02, 0.02], dtype=DTYPE)
+    belief = Belief(mean, torch.diag(std**2))
+    inputs = replace(make_inputs(half_extent_m=0.04), tcp=torch.tensor(
+        [-0.05, 0.0, 0.0, 0.02, 0.0, 0.0], dtype=DTYPE))  # fmt: skip
+
+    def step() -> tuple[Belief, Tensor]:
+        generator = torch.Generator().manual_seed(3)
+        with torch.no_grad():
+            posterior = dual.step(belief, inputs, DT_S, observation, generator)
+        return posterior, dual.last_log_likelihood
+
+    varying = dual_module.varying_columns
+    counts: list[int] = []
+    monkeypatch.setattr(dual_module, "varying_columns",
+                        lambda e, n=0: counts.append(len(c := varying(e, n))) or c)  # fmt: skip
+    fewer, fewer_likelihood = step()
+    assert 0 < max(counts) < 1000, counts
+    monkeypatch.setattr(dual_module, "varying_columns",
+                        lambda e, n=0: torch.arange(e.shape[-1]))  # fmt: skip
+    every, every_likelihood = step()
+    torch.testing.assert_close(fewer.mean, every.mean, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(fewer.cov, every.cov, rtol=1e-7, atol=1e-14)
+    torch.testing.assert_close(fewer_likelihood, every_likelihood, rtol=1e-9, atol=1e-9)
+    assert not torch.equal(fewer.mean, belief.mean)

@@ -552,6 +552,17 @@ def _fit_noise_removed(
     return score * shrink.clamp_min(0.0)[..., None, None], information - symmetrize(removed)
 
 
+def varying_columns(expected: Tensor, n_kept: int = 0) -> Tensor:
+    """Indices [j] (ascending) of the entries of expected observations [..., C, k] that differ
+    between the C points in any batch, and the last ``n_kept`` entries always. In the other
+    entries every point expects the same value, so they carry no evidence between the points
+    (equal residuals, zero deviations): most of a depth image sees the table either way."""
+    size = expected.shape[-1]
+    varies = (expected != expected[..., :1, :]).reshape(-1, size).any(0)
+    varies[size - n_kept :] = True
+    return varies.nonzero()[:, 0]
+
+
 def weighted_squared_sums(squared: Tensor, inverse_var: Tensor) -> Tensor:
     """Sums over the entries of squared residuals [..., C, k] weighted by each row of
     inverse_var [..., m, k] -> [..., C, m] (one matrix product for all m weightings)."""
@@ -1007,16 +1018,29 @@ class DualFilter:
         pairs: Tensor | None,
     ) -> Tensor:
         """The parameter log likelihoods (eq. 31) of the C points [..., C] with parameters
-        [..., C, p] (pairs: see ``update``); sets ``last_log_likelihood`` (eq. 37 per
-        modality). ``expected`` is used up (the squared residuals are written over it)."""
+        [..., C, p] (pairs: see ``update``), up to a constant; sets ``last_log_likelihood``
+        (eq. 37 per modality).
+
+        Only the entries where the points' expected observations differ
+        (``varying_columns``) are compared point by point; the others add the same residual
+        to every point, which only ``last_log_likelihood`` needs (one [..., k] product)."""
+        modality_weights = modality_inverse_var(noise_var, n_tactile)
+        columns = varying_columns(expected.detach(), n_tactile)
+        same = torch.ones(expected.shape[-1], dtype=torch.bool, device=expected.device)
+        same[columns] = False
+        shared = (expected[..., 0, :] - observation).square() * same
+        shared_sums = weighted_squared_sums(shared.unsqueeze(-2), modality_weights)
+        expected, observation, noise_var, modality_weights = (
+            tensor.index_select(-1, columns)
+            for tensor in (expected, observation, noise_var, modality_weights)
+        )
         mean_residual = expected.mean(-2) - observation
         if self.marginal_parameter_likelihood:
             fit, inverse_var, fit_noise = fitted_parameters(
                 expected, observation, mean_residual, noise_var, parameters, pairs
             )
         squared = squared_residuals(expected, observation, consume=True)
-        modality_weights = modality_inverse_var(noise_var, n_tactile)
-        modality_sums = weighted_squared_sums(squared, modality_weights)
+        modality_sums = weighted_squared_sums(squared, modality_weights) + shared_sums
         self.last_log_likelihood = log_mean_likelihood(modality_sums)
         if self.marginal_parameter_likelihood:
             log_likelihood = marginal_log_likelihood(
@@ -1068,6 +1092,11 @@ class DualFilter:
         expected = self.observation_model.expected(torch.cat([points, params], -1), forces)
         expected_mean = weights @ expected
         require_finite_summary(expected_mean, expected, "expected observation")
+        columns = varying_columns(expected.detach())  # elsewhere: no gain, nothing to update
+        expected, expected_mean, observation, noise_var = (
+            tensor.index_select(-1, columns)
+            for tensor in (expected, expected_mean, observation, noise_var)
+        )
         try:
             mean, cov = woodbury_update(
                 prior_mean,
