@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -175,9 +176,13 @@ def _states(batch: int, count: int, n_links: int = 2, seed: int = 0) -> Tensor:
 
 
 def _check_look_ahead(model: Any, states: Tensor, inputs: ProcessInput) -> None:
-    """model.look_ahead() agrees with model.predict (poses, process noise) in float64."""
+    """model.look_ahead() agrees with model.predict with gradients, the float64 net (poses,
+    process noise)."""
     with torch.no_grad():
-        got, want = model.look_ahead()(states, inputs, 0.05), model.predict(states, inputs, 0.05)
+        got = model.look_ahead()(states, inputs, 0.05)
+    want = model.predict(states, inputs, 0.05)
+    assert want.pose.requires_grad
+    want = replace(want, pose=want.pose.detach())
     assert got.pose.dtype == got.process_var.dtype == got.force_n.dtype == DTYPE
     layout = StateLayout(inputs.link_size_m.shape[-2])
     difference = layout.link_pose((got.pose - want.pose).abs())
@@ -203,6 +208,26 @@ def test_float32_copy_is_made_once_and_leaves_the_net_alone(tmp_path: Path) -> N
     after = model.predict(states, inputs, 0.05)
     assert torch.equal(before.pose, after.pose) and torch.equal(before.force_n, after.force_n)
     _check_look_ahead(model, states, inputs)
+
+
+def test_predict_without_gradients_is_the_float32_copy_with_the_force(tmp_path: Path) -> None:
+    """A filter in a skill predicts without gradients: the float32 copy of the look-aheads,
+    the finger force included, within their tolerances of the float64 net that training
+    differentiates."""
+    model = TestContext(tmp_path).add(GNNProcessModel, checkpoint=CHECKPOINT, hidden=32)
+    states, inputs = _states(3, 5), _inputs(3)
+    want = model.predict(states, inputs, 0.05)
+    assert want.pose.requires_grad
+    want = replace(want, pose=want.pose.detach(), force_n=want.force_n.detach())
+    with torch.no_grad():
+        got = model.predict(states, inputs, 0.05)
+    assert got.pose.dtype == got.force_n.dtype == DTYPE and not got.pose.requires_grad
+    difference = StateLayout(2).link_pose((got.pose - want.pose).abs())
+    assert 0 < float(difference[..., :2].max()) < POSITION_TOL_M / 10
+    assert float(difference[..., 2].max()) < ANGLE_TOL_RAD / 10
+    assert float(want.force_n.abs().max()) > 0.1
+    assert 0 < float((got.force_n - want.force_n).abs().max()) < 1e-4  # N
+    assert torch.equal(got.process_var, want.process_var)
 
 
 def test_float32_copy_follows_a_loaded_checkpoint(tmp_path: Path) -> None:

@@ -187,11 +187,23 @@ class _LearnedProcessModel(Component):
         raise NotImplementedError
 
     def predict(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
-        """states [..., C, n] -> Prediction (see ``vistac.plugins.filters.state``)."""
+        """states [..., C, n] -> Prediction (see ``vistac.plugins.filters.state``). Without
+        gradients (a filter in a skill) the net's MLPs run in float32 as in ``look_ahead``,
+        the finger force included; with them (training) in float64."""
+        net = self.net if torch.is_grad_enabled() else self._float32_net()
         if self.config.mirror_average:
-            return mirror_averaged(self.net, states, inputs, dt_s)
-        prediction: Prediction = self.net(states, inputs, dt_s)
+            return mirror_averaged(net, states, inputs, dt_s)
+        prediction: Prediction = net(states, inputs, dt_s)
         return prediction
+
+    def _float32_net(self) -> nn.Module:
+        """The net with its MLPs in float32, copied again whenever the net's weights have
+        changed since the last copy (a checkpoint loaded, a training step; compared
+        exactly, so any change counts)."""
+        if self._copy is None or not self._copy.matches(self.net):
+            self._copy = _LookAheadCopy(self.net)
+            log.debug("%s: float32 copy of the net made", self.plugin)
+        return self._copy.net
 
     def look_ahead(self) -> Callable[[Tensor, ProcessInput, float], Prediction]:
         """The prediction for one look-ahead (no gradients, the finger force not needed):
@@ -200,13 +212,8 @@ class _LearnedProcessModel(Component):
         does the Prediction (poses within 1e-9 m and 1e-7 rad of ``predict``'s after 37
         steps, see tests/test_lookahead_float32.py).
 
-        The copy of the net is made on the first call and again whenever the net's weights
-        have changed since (a checkpoint loaded, a training step; compared exactly, so any
-        change counts): ask anew for each look-ahead."""
-        if self._copy is None or not self._copy.matches(self.net):
-            self._copy = _LookAheadCopy(self.net)
-            log.debug("%s: float32 look-ahead copy of the net made", self.plugin)
-        forward = functools.partial(self._copy.net, **self._look_ahead_options)
+        The copy is that of ``_float32_net``: ask anew for each look-ahead."""
+        forward = functools.partial(self._float32_net(), **self._look_ahead_options)
         if self.config.mirror_average:
             return functools.partial(mirror_averaged, forward)
         return forward
