@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import threading
 import time
 from collections.abc import Iterator
@@ -29,7 +30,7 @@ def emulator() -> Iterator[URControllerProcess]:
         yield process
 
 
-def make_arm(plugins: Plugins, tmp_path: Path, host: str, **options: Any) -> Any:
+def make_arm(plugins: Plugins | None, tmp_path: Path, host: str, **options: Any) -> Any:
     components = {"arm": {"plugin": "ur_rtde.arm", "with": {"host": host, **options}}}
     ctx = build_components(components, tmp_path, plugins=plugins)
     return ctx.component("arm")
@@ -113,9 +114,34 @@ def test_speed_is_capped_and_moves_stay_in_the_workspace(
 
 
 def test_dropped_connection_is_detected_fast_and_nothing_blocks(
-    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+    emulator: URControllerProcess, tmp_path: Path
 ) -> None:
-    arm = make_arm(plugins, tmp_path, emulator.host)
+    """In a process of its own, as on a robot: the interfaces earlier tests abandoned keep
+    ur_rtde's threads alive in this one, and with them around a reconnect crashed ur_rtde's
+    RTDEControlInterface constructor in about 1 of 16 runs of this module (0 of 42 alone)."""
+    spawn = multiprocessing.get_context("spawn")
+    results = spawn.Queue()
+    child = spawn.Process(target=_drop_and_reconnect, args=(emulator, str(tmp_path), results))
+    child.start()
+    child.join(60)
+    assert child.exitcode == 0, f"the arm's process ended with {child.exitcode}"
+    outcome = results.get(timeout=5)
+    assert isinstance(outcome, float), outcome
+    assert outcome < 0.5, f"disconnect detected after {outcome:.3f} s"
+
+
+def _drop_and_reconnect(emulator: URControllerProcess, tmp_dir: str, results: Any) -> None:
+    """Command, drop the connection, check the arm notices fast and never blocks, restore
+    and reconnect. Puts the seconds from the drop to the HardwareError in ``results``, or
+    what went wrong."""
+    try:
+        results.put(_drop_and_reconnect_s(emulator, Path(tmp_dir)))
+    except BaseException as error:  # reported to the test in the parent process
+        results.put(f"{type(error).__name__}: {error}")
+
+
+def _drop_and_reconnect_s(emulator: URControllerProcess, tmp_dir: Path) -> float:
+    arm = make_arm(None, tmp_dir, emulator.host)
     try:
         arm.command_velocity(np.array([0.01, 0.0, 0.0, 0.0]))
         dropped_at = time.monotonic()
@@ -125,7 +151,6 @@ def test_dropped_connection_is_detected_fast_and_nothing_blocks(
                 arm.command_velocity(np.array([0.01, 0.0, 0.0, 0.0]))
                 time.sleep(1 / 15)
         latency_s = time.monotonic() - dropped_at
-        assert latency_s < 0.5, f"disconnect detected after {latency_s:.3f} s"
         assert not arm.connected
         with pytest.raises(HardwareError, match="not connected"):
             arm.state()
@@ -133,6 +158,7 @@ def test_dropped_connection_is_detected_fast_and_nothing_blocks(
         emulator.restore()
         arm.reconnect()
         assert arm.connected and arm.state().pose.shape == (4,)
+        return latency_s
     finally:
         arm.close()
 

@@ -570,6 +570,14 @@ class URControllerProcess:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def __getstate__(self) -> dict[str, Any]:
+        """For a spawned process that drives the emulator (its host and request pipe; the
+        emulator's own process stays with the parent, which closes it)."""
+        return {"host": self.host, "_pipe": self._pipe}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state, _lock=threading.Lock())
+
     def request(self, *request: Any, timeout_s: float = 5.0) -> Any:
         with self._lock:
             self._pipe.send(request)
