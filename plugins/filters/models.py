@@ -207,9 +207,9 @@ class _LearnedProcessModel(Component):
 
     def look_ahead(self) -> Callable[[Tensor, ProcessInput, float], Prediction]:
         """The prediction for one look-ahead (no gradients, the finger force not needed):
-        ``predict`` with the net's MLPs in float32, about twice as fast on CPU. The features,
-        the integration of the predicted change and the process noise stay float64, and so
-        does the Prediction (poses within 1e-9 m and 1e-7 rad of ``predict``'s after 37
+        the net with its MLPs in float32, about twice as fast on CPU. The features, the
+        integration of the predicted change and the process noise stay float64, and so does
+        the Prediction (poses within 1e-9 m and 1e-7 rad of the float64 net's after 37
         steps, see tests/test_lookahead_float32.py).
 
         The copy is that of ``_float32_net``: ask anew for each look-ahead."""
