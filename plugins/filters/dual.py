@@ -558,7 +558,8 @@ def varying_columns(expected: Tensor, n_kept: int = 0) -> Tensor:
     entries every point expects the same value, so they carry no evidence between the points
     (equal residuals, zero deviations): most of a depth image sees the table either way."""
     size = expected.shape[-1]
-    varies = (expected != expected[..., :1, :]).reshape(-1, size).any(0)
+    # max != min: two passes that reduce along the rows, faster than a [C, k] comparison
+    varies = (expected.amax(-2) != expected.amin(-2)).reshape(-1, size).any(0)
     varies[size - n_kept :] = True
     return varies.nonzero()[:, 0]
 
