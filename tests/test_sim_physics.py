@@ -11,7 +11,7 @@ import pytest
 from simctx import TestContext, add_camera, box_object, sim_setup
 from vistac.component import Component
 from vistac.errors import HardwareError, SafetyError
-from vistac.objects import HINGE_GAP_M
+from vistac.objects import HINGE_GAP_M, ObjectSpec, link_frames
 from vistac.plugins.actions import plugin as actions_plugin
 from vistac.plugins.actions.executor import CartesianExecutor
 from vistac.plugins.hardware.sim import plugin as sim_plugin
@@ -155,6 +155,20 @@ def test_articulated_free_link_swings_about_the_hinge(tmp_path: Path, kind: str)
     np.testing.assert_allclose(
         _hinge_from(poses[0], half_m), _hinge_from(poses[1], -half_m), atol=1e-3
     )
+
+
+@pytest.mark.parametrize("kind", ["homogeneous", "heterogeneous", "articulated"])
+def test_the_object_spawns_at_its_spec_pose_in_radians(tmp_path: Path, kind: str) -> None:
+    """The link poses at the start are ``link_frames`` of the spec, its yaw in radians (MJCF
+    reads angles in degrees unless told otherwise: 1.2 rad once spawned as 1.2 degrees)."""
+    spec = _two_rects(kind) if kind != "homogeneous" else box_object()
+    spec["pose"] = [0.01, 0.46, 1.2]
+    world = sim_setup(tmp_path, spec).find("world")
+    expected = link_frames(ObjectSpec.model_validate(spec))
+    np.testing.assert_allclose(world.link_poses(), expected, atol=1e-9)
+    for _ in range(5):
+        world.step(DT_S)
+    np.testing.assert_allclose(world.link_poses(), expected, atol=1e-4)  # it rests there
 
 
 @pytest.mark.parametrize(("friction", "slides"), [(0.1, True), (0.5, False)])

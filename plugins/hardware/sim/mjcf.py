@@ -189,6 +189,7 @@ def build_mjcf(
     )
     return (
         f'<mujoco model="vistac_{spec.name}">'
+        '<compiler angle="radian"/>'  # MJCF's default unit is degrees; vistac's are radians
         f'<option timestep="{timestep_s:.9g}" integrator="implicitfast" '
         'cone="elliptic" impratio="10" '
         f'gravity="{_vec(gravity_vector(tilt_rad))}"/>'
