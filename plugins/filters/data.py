@@ -68,6 +68,9 @@ class Trajectory:
     camera_pose: FloatArray | None
     intrinsics: CameraIntrinsics | None
     parameters: dict[str, float]
+    reflected: bool = False
+    """The mirror image of a recorded trajectory (:func:`mirrored`): its link offsets
+    (``link_geometry`` of the unreflected ``spec``) are reflected too."""
 
     @property
     def steps(self) -> int:
@@ -85,7 +88,7 @@ class Trajectory:
             self.poses[cut], self.twists[cut], self.tcp[cut], self.force_n[cut],
             None if self.depth_m is None else self.depth_m[cut],
             None if self.camera_pose is None else self.camera_pose[cut],
-            self.intrinsics, self.parameters,
+            self.intrinsics, self.parameters, self.reflected,
         )  # fmt: skip
 
 
@@ -145,6 +148,40 @@ def _episode(folder: Path) -> Trajectory | None:
         intrinsics=intrinsics,
         parameters=dict(truth["parameters"]),
     )
+
+
+def mirrored(trajectory: Trajectory) -> Trajectory:
+    """The same interaction of the mirror image of the scene, reflected across the line of
+    the push or pull (through the TCP's first position, along ``pd_rad``): what the simulator
+    would have recorded for the reflected object, since planar pushing on an isotropic table
+    is mirror-symmetric. Positions and velocities are reflected, angles become ``2 pd -
+    theta``, rates change sign, and so do each link's CoM y and the y and angle of each
+    link's offset from link 0 (in their own frames, which the reflection turns). The push
+    direction and the TCP's path stay. Without depth images: the camera is not reflected."""
+    angle = 2.0 * trajectory.pd_rad
+    flip = np.array([[np.cos(angle), np.sin(angle)], [np.sin(angle), -np.cos(angle)]])
+    origin = trajectory.tcp[0, :2]
+
+    def planar(values: FloatArray, positions: bool) -> FloatArray:
+        """Poses or twists [..., 3] (x, y, theta or their rates) reflected."""
+        out = np.array(values, dtype=float)
+        shift = origin if positions else 0.0
+        out[..., :2] = shift + (values[..., :2] - shift) @ flip.T
+        out[..., 2] = angle - values[..., 2] if positions else -values[..., 2]
+        return out
+
+    tcp = np.concatenate([planar(trajectory.tcp[:, :3], True),
+                          planar(trajectory.tcp[:, 3:], False)], axis=1)  # fmt: skip
+    parameters = {
+        name: -value if name.startswith("com_y_") else value
+        for name, value in trajectory.parameters.items()
+    }
+    return replace(
+        trajectory, source=f"{trajectory.source} (mirrored)",
+        poses=planar(trajectory.poses, True), twists=planar(trajectory.twists, False), tcp=tcp,
+        force_n=trajectory.force_n @ flip.T, depth_m=None, camera_pose=None,
+        parameters=parameters, reflected=not trajectory.reflected,
+    )  # fmt: skip
 
 
 def acted_link(trajectory: Trajectory, contact_force_n: float = 0.3) -> int:
@@ -257,6 +294,14 @@ def link_geometry(spec: ObjectSpec) -> tuple[FloatArray, FloatArray]:
     return size, relative_poses(link_frames(spec))
 
 
+def _link_geometry(trajectory: Trajectory) -> tuple[FloatArray, FloatArray]:
+    """``link_geometry`` of the trajectory's object, reflected where the trajectory is."""
+    size, offset = link_geometry(trajectory.spec)
+    if trajectory.reflected:
+        offset = offset * np.array([1.0, -1.0, -1.0])
+    return size, offset
+
+
 def relative_poses(poses: FloatArray) -> FloatArray:
     """Each planar pose [L, 3] relative to the first, in the first's frame: [L, 3]."""
     c, s = np.cos(poses[0, 2]), np.sin(poses[0, 2])
@@ -284,7 +329,7 @@ def parameter_names(layout: StateLayout) -> tuple[str, ...]:
 
 def process_inputs(trajectories: list[Trajectory]) -> list[ProcessInput]:
     """Per step t, one ProcessInput batched over the trajectories (same length T)."""
-    sizes, offsets = zip(*(link_geometry(t.spec) for t in trajectories), strict=True)
+    sizes, offsets = zip(*(_link_geometry(t) for t in trajectories), strict=True)
     link_size = torch.as_tensor(np.stack(sizes), dtype=DTYPE)
     link_offset = torch.as_tensor(np.stack(offsets), dtype=DTYPE)
     tcp = torch.as_tensor(np.stack([t.tcp for t in trajectories]), dtype=DTYPE)  # [B, T, 6]
