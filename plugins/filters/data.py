@@ -28,6 +28,7 @@ from vistac.objects import (
     to_link_frame,
     to_world_xy,
 )
+from vistac.plugins.filters.mirror import reflect_poses
 from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
 from vistac.types import CameraIntrinsics, FloatArray
 
@@ -158,28 +159,26 @@ def mirrored(trajectory: Trajectory) -> Trajectory:
     theta``, rates change sign, and so do each link's CoM y and the y and angle of each
     link's offset from link 0 (in their own frames, which the reflection turns). The push
     direction and the TCP's path stay. Without depth images: the camera is not reflected."""
-    angle = 2.0 * trajectory.pd_rad
-    flip = np.array([[np.cos(angle), np.sin(angle)], [np.sin(angle), -np.cos(angle)]])
-    origin = trajectory.tcp[0, :2]
+    origin = torch.as_tensor(trajectory.tcp[0, :2], dtype=DTYPE)
+    pd_rad = torch.as_tensor(trajectory.pd_rad, dtype=DTYPE)
 
-    def planar(values: FloatArray, positions: bool) -> FloatArray:
-        """Poses or twists [..., 3] (x, y, theta or their rates) reflected."""
-        out = np.array(values, dtype=float)
-        shift = origin if positions else 0.0
-        out[..., :2] = shift + (values[..., :2] - shift) @ flip.T
-        out[..., 2] = angle - values[..., 2] if positions else -values[..., 2]
-        return out
+    def reflect(pose_twist: FloatArray) -> FloatArray:
+        """Poses and twists [T, L, 6] reflected (``reflect_poses``)."""
+        return reflect_poses(torch.as_tensor(pose_twist, dtype=DTYPE), origin, pd_rad).numpy()
 
-    tcp = np.concatenate([planar(trajectory.tcp[:, :3], True),
-                          planar(trajectory.tcp[:, 3:], False)], axis=1)  # fmt: skip
+    links = reflect(np.concatenate([trajectory.poses, trajectory.twists], axis=-1))
+    tcp = reflect(trajectory.tcp[:, None, :])[:, 0]
+    force_as_velocity = np.zeros((trajectory.steps, 1, 6))  # a force reflects as a velocity
+    force_as_velocity[:, 0, 3:5] = trajectory.force_n
+    force = reflect(force_as_velocity)
     parameters = {
         name: -value if name.startswith("com_y_") else value
         for name, value in trajectory.parameters.items()
     }
     return replace(
         trajectory, source=f"{trajectory.source} (mirrored)",
-        poses=planar(trajectory.poses, True), twists=planar(trajectory.twists, False), tcp=tcp,
-        force_n=trajectory.force_n @ flip.T, depth_m=None, camera_pose=None,
+        poses=links[..., :3], twists=links[..., 3:], tcp=tcp,
+        force_n=force[:, 0, 3:5], depth_m=None, camera_pose=None,
         parameters=parameters, reflected=not trajectory.reflected,
     )  # fmt: skip
 
