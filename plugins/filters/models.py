@@ -132,6 +132,7 @@ class _LookAheadCopy:
             for module in self.net.modules():
                 if isinstance(module, MLP):
                     module.float()
+                    module.freeze()
 
     def matches(self, net: nn.Module) -> bool:
         """Whether ``net`` still has the weights this copy was made from (exactly)."""

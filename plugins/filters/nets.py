@@ -35,7 +35,6 @@ worked out in the states' dtype, only the MLPs run in their weights' dtype.
 from __future__ import annotations
 
 import functools
-import itertools
 from dataclasses import dataclass
 
 import torch
@@ -67,6 +66,8 @@ LINK_FEATURE_DIM = 17
 ROBOT_FEATURE_DIM = 9
 
 _LINK, _ROBOT, _TABLE = 0, 1, 2
+_FRICTION_FEATURE = 9
+"""The column of f / FRICTION_SCALE in the link features."""
 _EDGE_ROBOT, _EDGE_JOINT, _EDGE_SUPPORT = 1, 2, 3
 _INITIAL_STD = (0.001, 0.001, 0.01, 0.005, 0.005, 0.05)
 """Initial learned process noise std per field: m, m, rad, m/s, m/s, rad/s."""
@@ -123,7 +124,7 @@ def rotate(xy: Tensor, angle_rad: Tensor | Turn) -> Tensor:
     turn = angle_rad if isinstance(angle_rad, Turn) else Turn.of(angle_rad)
     c, s = turn.cos, turn.sin
     x, y = xy.unbind(-1)
-    return torch.stack([c * x - s * y, s * x + c * y], -1)
+    return torch.stack([torch.addcmul(c * x, s, y, value=-1.0), torch.addcmul(s * x, c, y)], -1)
 
 
 @functools.lru_cache(maxsize=64)
@@ -188,38 +189,60 @@ def box_gap_m(point_m: Tensor, half_extents_m: Tensor) -> Tensor:
     return torch.linalg.vector_norm((point_m.abs() - half_extents_m).clamp(min=0.0), dim=-1)
 
 
-def _tcp_gap_m(pose: Tensor, inputs: ProcessInput, size_m: Tensor) -> Tensor:
-    """Gap from the TCP to each link's footprint box, capped at ``GAP_CAP_M``: [..., C, L]
-    (pose [..., C, L, 6], size_m [..., C, L, 2])."""
-    tcp = inputs.tcp[..., None, None, :2]
-    local = rotate(tcp - pose[..., :2], -pose[..., 2])
-    return box_gap_m(local, size_m).clamp(max=GAP_CAP_M)
+@dataclass(frozen=True)
+class RelativeLinks:
+    """The links of states [..., C, n] seen in the reference frame (``relative_links``)."""
+
+    xy_m: Tensor
+    """Positions [..., C, L, 2]."""
+    velocity_mps: Tensor
+    """Velocities [..., C, L, 2]."""
+    rate_radps: Tensor
+    """Angular rates [..., C, L, 1] (the same in every frame)."""
+    theta_rad: Tensor
+    """Angles [..., C, L], wrapped into (-pi, pi]..."""
+    turn: Turn
+    """... and their cosine and sine."""
 
 
-def link_features(states: Tensor, inputs: ProcessInput, into: Turn | None = None) -> Tensor:
-    """Per-link features in the reference frame: [..., C, L, LINK_FEATURE_DIM]. into: the
+def relative_links(states: Tensor, inputs: ProcessInput, into: Turn | None = None) -> RelativeLinks:
+    """The link poses and velocities of states [..., C, n] in the reference frame. into: the
     first of :func:`frame_turns`."""
-    layout = layout_of(states)
-    pose = layout.link_pose(states)
+    pose = layout_of(states).link_pose(states)
     origin, angle = _frame(inputs)
     angle_l = angle.unsqueeze(-1)  # [..., 1, 1]
     position_velocity = torch.stack([pose[..., :2] - origin.unsqueeze(-2), pose[..., 3:5]], -2)
-    turn = -angle_l.unsqueeze(-1) if into is None else into
-    xy, velocity = rotate(position_velocity, turn).unbind(-2)
-    theta = wrap(pose[..., 2] - angle_l)
-    size = inputs.link_size_m.unsqueeze(-3).expand(*pose.shape[:-1], 2)
-    parameters = layout.link_parameters(states)
+    xy, velocity = rotate(position_velocity, into or Turn.of(-angle_l.unsqueeze(-1))).unbind(-2)
+    turn = Turn.of(pose[..., 2] - angle_l)
+    return RelativeLinks(xy, velocity, pose[..., 5:6], torch.atan2(turn.sin, turn.cos), turn)
+
+
+def link_features(
+    states: Tensor,
+    inputs: ProcessInput,
+    into: Turn | None = None,
+    relative: RelativeLinks | None = None,
+) -> Tensor:
+    """Per-link features in the reference frame: [..., C, L, LINK_FEATURE_DIM]. into: the
+    first of :func:`frame_turns`; relative: ``relative_links`` of the same, where known."""
+    relative = relative or relative_links(states, inputs, into)
+    xy, turn = relative.xy_m, relative.turn
+    size = inputs.link_size_m.unsqueeze(-3).expand(*xy.shape)
+    parameters = layout_of(states).link_parameters(states)
+    # The TCP is the reference frame's origin: in the link's frame it lies at -R(-theta) xy,
+    # as far from the footprint box (symmetric about the origin) as R(-theta) xy.
+    tcp_mirror = rotate(xy, Turn(turn.cos, -turn.sin))
     features = torch.cat(
         [
             xy,
-            theta.unsqueeze(-1),
-            velocity,
-            pose[..., 5:6],
-            torch.stack([torch.cos(theta), torch.sin(theta)], -1),
+            relative.theta_rad.unsqueeze(-1),
+            relative.velocity_mps,
+            relative.rate_radps,
+            torch.stack([turn.cos, turn.sin], -1),
             parameters,
-            xy + rotate(parameters[..., 2:4], theta),
+            xy + rotate(parameters[..., 2:4], turn),
             size,
-            _tcp_gap_m(pose, inputs, size).unsqueeze(-1),
+            box_gap_m(tcp_mirror, size).clamp(max=GAP_CAP_M).unsqueeze(-1),
         ],
         -1,
     )
@@ -255,9 +278,8 @@ def integrate(
     Returns the next time-varying block [..., C, 6 L] (world frame).
     """
     pose = layout_of(states).link_pose(states)
-    angle = _frame(inputs)[1][..., None, None]  # [..., 1, 1, 1]
     planar = delta.unflatten(-1, (2, 3))  # (dx, dy, dtheta), (dvx, dvy, domega)
-    turn = angle if back is None else back
+    turn = back or _frame(inputs)[1][..., None, None]  # [..., 1, 1, 1]
     change = torch.cat([rotate(planar[..., :2], turn), planar[..., 2:]], -1)
     scales = (
         *(SPEED_SCALE_MPS * dt_s, SPEED_SCALE_MPS * dt_s, RATE_SCALE_RADPS * dt_s),
@@ -279,41 +301,72 @@ def force_to_world(force: Tensor, inputs: ProcessInput) -> Tensor:
 
 class MLP(nn.Sequential):
     """Linear layers with SiLU between them, on rows [..., n_in] -> [..., n_out] (``forward``)
-    or on the concatenation of several inputs (``columns``). A SiLU may work in place: it only
-    ever gets the fresh output of the layer before."""
+    or on the concatenation of several inputs (``rows``). A SiLU works in place: it only ever
+    gets the fresh output of the layer before."""
 
     FEATURE_MAJOR_MIN_ROWS = 256
-    """From this many rows on, ``columns`` multiplies feature-major (see there)..."""
+    """From this many rows on, ``rows`` multiplies feature-major (see there)..."""
     FEATURE_MAJOR_MIN_ROWS_FLOAT32 = 4096
     """... and from this many in float32, where the BLAS does the row-major products about
     as fast up to there (hidden 32, one thread)."""
+
+    def __init__(self, *layers: nn.Module) -> None:
+        super().__init__(*layers)
+        self._frozen: list[tuple[Tensor, Tensor]] | None = None
 
     @property
     def dtype(self) -> torch.dtype:
         """The weights' dtype, which the inputs must have (float64; float32 in a copy made
         for look-aheads, see ``_LearnedProcessModel.look_ahead``)."""
-        first = self[0]
-        assert isinstance(first, nn.Linear)
-        return first.weight.dtype
+        return self._linear_layers()[0][0].dtype
 
-    def columns(self, *inputs: Tensor) -> Tensor:
+    def freeze(self) -> None:
+        """Keep the layers' (transposed weight, bias) from now on: for a copy whose weights
+        never change again (the float32 copy for look-aheads, made after its ``float()``),
+        it saves an operation per layer and call."""
+        self._frozen = self._linear_layers()
+
+    def _linear_layers(self) -> list[tuple[Tensor, Tensor]]:
+        """(weight [n_in, n_out] (a transposed view), bias [n_out]) of every linear layer;
+        a SiLU follows each but the last."""
+        if self._frozen is not None:
+            return self._frozen
+        layers: list[tuple[Tensor, Tensor]] = []
+        for layer in self._modules.values():
+            if isinstance(layer, nn.Linear):
+                weight, bias = layer._parameters["weight"], layer._parameters["bias"]
+                assert weight is not None and bias is not None
+                layers.append((weight.t(), bias))
+        return layers
+
+    def rows(self, *inputs: Tensor) -> Tensor:
         """The layers on the concatenation of ``inputs`` (rows [n, d_i], or [d_i] for the same
-        values in every row; the d_i add up to n_in) -> [n_out, n] (feature-major).
+        values in every row; the d_i add up to n_in) -> [n, n_out].
 
-        With many rows, the first layer multiplies each input by its block of weight columns
-        (a constant one goes into the bias), so nothing is concatenated, and every product is
-        ``W x^T`` with the rows contiguous: for a few dozen features and thousands of rows,
-        the order the BLAS does fastest. With fewer rows, where the cost per call dominates,
-        the concatenated rows go through the layers as usual.
+        With many rows, the layers run feature-major: the first multiplies each input by its
+        block of weight columns (a constant one goes into the bias), so nothing is
+        concatenated, and every product is ``W x^T`` with the rows contiguous, for a few
+        dozen features and thousands of rows the order the BLAS does fastest. With fewer
+        rows, where the cost per call dominates, the concatenated rows go through the layers
+        as usual, each layer one ``addmm``.
         """
         n_rows = max(part.shape[0] if part.dim() == 2 else 0 for part in inputs)
-        if n_rows < self._feature_major_min_rows(inputs[0].dtype):
-            rows = [part if part.dim() == 2 else part.expand(n_rows, -1) for part in inputs]
-            return self._layers(torch.cat(rows, -1), 0, feature_major=False).t()
-        first = self[0]
-        assert isinstance(first, nn.Linear)
-        blocks = first.weight.split([part.shape[-1] for part in inputs], 1)
-        bias: Tensor = first.bias
+        layers = self._linear_layers()
+        if n_rows >= self._feature_major_min_rows(inputs[0].dtype):
+            return self._feature_major(inputs, layers).t()
+        parts = [part if part.dim() == 2 else part.expand(n_rows, -1) for part in inputs]
+        hidden = torch.cat(parts, -1) if len(parts) > 1 else parts[0]
+        for index, (weight_t, bias) in enumerate(layers):
+            hidden = torch.addmm(bias, hidden, weight_t)
+            if index < len(layers) - 1:
+                hidden = nn.functional.silu(hidden, inplace=True)
+        return hidden
+
+    @staticmethod
+    def _feature_major(inputs: tuple[Tensor, ...], layers: list[tuple[Tensor, Tensor]]) -> Tensor:
+        """The layers on ``inputs`` (see ``rows``), feature-major: -> [n_out, n]."""
+        blocks = layers[0][0].t().split([part.shape[-1] for part in inputs], 1)
+        bias: Tensor = layers[0][1]
         for part, weight in zip(inputs, blocks, strict=True):
             if part.dim() == 1:
                 bias = torch.addmv(bias, weight, part)
@@ -323,7 +376,10 @@ class MLP(nn.Sequential):
         hidden = torch.addmm(bias.unsqueeze(-1), weight, part.t())
         for part, weight in others:
             hidden = hidden.addmm_(weight, part.t())
-        return self._layers(hidden, 1, feature_major=True)
+        for weight_t, bias in layers[1:]:
+            hidden = nn.functional.silu(hidden, inplace=True)
+            hidden = torch.addmm(bias.unsqueeze(-1), weight_t.t(), hidden)
+        return hidden
 
     def _feature_major_min_rows(self, dtype: torch.dtype) -> int:
         if dtype == torch.float32:
@@ -331,34 +387,8 @@ class MLP(nn.Sequential):
         return self.FEATURE_MAJOR_MIN_ROWS
 
     def forward(self, features: Tensor) -> Tensor:
-        output = self.columns(features.reshape(-1, features.shape[-1])).t()
+        output = self.rows(features.reshape(-1, features.shape[-1]))
         return output.reshape(*features.shape[:-1], output.shape[-1])
-
-    def _layers(self, hidden: Tensor, start: int, feature_major: bool) -> Tensor:
-        """Layers ``start``... on rows [n, d] or, feature-major, on [d, n]. Calls the
-        functions directly: for a few dozen rows, ``nn.Module``'s attribute look-up and call
-        cost as much as the products."""
-        for layer in itertools.islice(self._modules.values(), start, None):
-            if isinstance(layer, nn.Linear):
-                weight, bias = _weight_and_bias(layer)
-                if feature_major:
-                    hidden = torch.addmm(bias.unsqueeze(-1), weight, hidden)
-                else:
-                    hidden = nn.functional.linear(hidden, weight, bias)
-            elif isinstance(layer, nn.SiLU):
-                hidden = nn.functional.silu(hidden, inplace=layer.inplace)
-            else:
-                assert layer is not None
-                hidden = layer(hidden)
-        return hidden
-
-
-def _weight_and_bias(layer: nn.Linear) -> tuple[Tensor, Tensor]:
-    """A linear layer's weight and bias, read from its parameter dict (``layer.weight`` goes
-    through ``nn.Module.__getattr__``)."""
-    weight, bias = layer._parameters["weight"], layer._parameters["bias"]
-    assert weight is not None and bias is not None
-    return weight, bias
 
 
 def mlp(n_in: int, hidden: int, n_out: int) -> MLP:
@@ -581,8 +611,8 @@ class GraphProcessNet(nn.Module):
     filter; read off the message, the product had to be learned, and was learned poorly.
     The chain is visited breadth-first from the acted link (``inputs.link``), which may differ
     across the batch. The nodes of all batch elements and sigma points are rows of one matrix,
-    updated in place phase by phase; each phase runs the MLPs (``MLP.columns``: no concatenated
-    inputs, feature-major products for many rows) on just the rows it updates.
+    updated in place phase by phase; each phase runs the MLPs (``MLP.rows``: no concatenated
+    inputs and feature-major products for many rows) on just the rows it updates.
     """
 
     def __init__(self, hidden: int = 64) -> None:
@@ -597,11 +627,11 @@ class GraphProcessNet(nn.Module):
 
     def _message(self, sender: Tensor, receiver: Tensor, edge: Tensor) -> Tensor:
         """f_e of sender, receiver [n, D] (or [D] for all) and edge [n, EDGE_DIM] -> [n, H]."""
-        return self.f_e.columns(sender, receiver, edge).t()
+        return self.f_e.rows(sender, receiver, edge)
 
     def _update(self, node: Tensor, message: Tensor) -> Tensor:
         """The residual update of node [n, D] by message [n, H] -> [n, D]."""
-        return node + self.f_n.columns(node, message).t()
+        return node + self.f_n.rows(node, message)
 
     def forward(
         self,
@@ -621,10 +651,11 @@ class GraphProcessNet(nn.Module):
         are equal, as at every step of a straight look-ahead."""
         parts = self._input_parts(states, inputs, reuse_inputs and not torch.is_grad_enabled())
         layout, weights = layout_of(states), self.f_e.dtype
-        links = self._link_nodes(states, inputs, parts).reshape(-1, NODE_DIM).to(weights)
-        friction = layout.link_parameters(states)[..., 1].reshape(-1) / FRICTION_SCALE
-        support_edges = _edge(friction.to(weights), _EDGE_SUPPORT)  # [B C L, EDGE_DIM]
-        joint_edges = self._joint_edges(states, inputs, parts).to(weights)
+        relative = relative_links(states, inputs, parts.into)
+        links = self._link_nodes(states, inputs, parts, relative).reshape(-1, NODE_DIM)
+        links = links.to(weights)
+        support_edges = _edge(links[:, _FRICTION_FEATURE], _EDGE_SUPPORT)  # [B C L, EDGE_DIM]
+        joint_edges = self._joint_edges(states, relative, parts).to(weights)
         nodes = links.clone()  # updated in place, phase by phase
         self._propagate_cause(nodes, parts, support_edges, joint_edges)
         self._propagate_effect(nodes, joint_edges, parts.chain)
@@ -643,7 +674,7 @@ class GraphProcessNet(nn.Module):
         """The tactile force (world, N) [..., C, 2] from the updated nodes [B C L, D]: the sum
         over the links of their friction load ``g m f`` times ``tac_net`` of their node (a
         vector in the reference frame, about minus the link's sliding direction)."""
-        per_link = self.tac_net.columns(nodes).t().to(states.dtype)  # [B C L, 2]
+        per_link = self.tac_net.rows(nodes).to(states.dtype)  # [B C L, 2]
         per_link = per_link.reshape(*states.shape[:-1], -1, 2)
         force = (friction_load(states).unsqueeze(-1) * per_link).sum(-2)
         return force_to_world(force, inputs)
@@ -679,46 +710,43 @@ class GraphProcessNet(nn.Module):
         )
 
     @staticmethod
-    def _joint_edges(states: Tensor, inputs: ProcessInput, parts: _InputParts) -> Tensor:
+    def _joint_edges(states: Tensor, relative: RelativeLinks, parts: _InputParts) -> Tensor:
         """Static features of the edges across each joint k towards its two links:
         [2 B C (L - 1), EDGE_DIM], towards link k in the first B C (L - 1) rows, towards link
-        k + 1 in the rest (see ``_Chain.joint_rows``)."""
-        layout = layout_of(states)
-        pose = layout.link_pose(states)
-        hinges = hinge_points(pose, inputs, parts.hinge_offsets)  # [..., C, L - 1, 2]
-        receivers = torch.stack([pose[..., :-1, :2], pose[..., 1:, :2]])  # [2, ..., C, L - 1, 2]
-        geometry = rotate(hinges - receivers, parts.into.squeeze()) / SIZE_SCALE_M
-        friction = layout.joint_friction(states) / JOINT_FRICTION_SCALE_NM  # [..., C, L - 1]
+        k + 1 in the rest (see ``_Chain.joint_rows``). Their geometry, the joint's position
+        from the receiving link in the reference frame, from the links there (``relative``)."""
+        turn, xy = relative.turn, relative.xy_m
+        from_first = rotate(parts.hinge_offsets, Turn(turn.cos[..., :-1], turn.sin[..., :-1]))
+        from_second = from_first + (xy[..., :-1, :] - xy[..., 1:, :])
+        geometry = torch.stack([from_first, from_second]) / SIZE_SCALE_M  # [2, ..., C, L - 1, 2]
+        friction = layout_of(states).joint_friction(states) / JOINT_FRICTION_SCALE_NM
         edges = _edge(friction.expand(geometry.shape[:-1]), _EDGE_JOINT, geometry)
         return edges.reshape(-1, EDGE_DIM)
-
-    def _cause_update(
-        self,
-        nodes: Tensor,
-        rows: Tensor,
-        sender: Tensor,
-        edge: Tensor,
-        support: tuple[Tensor, Tensor],
-    ) -> None:
-        """Update ``rows`` [n] of nodes [B C L, D] in place by the cause message from sender
-        [n, D] over edge [n, EDGE_DIM] plus the table's support message: ``support`` holds
-        the table node [D] (the same for every row) and the support edges [B C L, EDGE_DIM]."""
-        table, support_edges = support
-        node = nodes.index_select(0, rows)
-        message = self._message(sender, node, edge)
-        message = message + self._message(table, node, support_edges.index_select(0, rows))
-        nodes.index_copy_(0, rows, self._update(node, message))
 
     def _propagate_cause(
         self, nodes: Tensor, parts: _InputParts, support_edges: Tensor, joint_edges: Tensor
     ) -> None:
         """Breadth-first from the robot: the links at depth d are updated from their parent's
-        (already updated) features plus their support message. nodes [B C L, D], in place."""
-        support = (parts.table, support_edges)
-        self._cause_update(nodes, parts.chain.acted_rows, parts.robot, parts.robot_edge, support)
-        for receivers, senders, edges in parts.chain.cause:
-            sender, edge = nodes.index_select(0, senders), joint_edges.index_select(0, edges)
-            self._cause_update(nodes, receivers, sender, edge, support)
+        (already updated) features plus their support message. nodes [B C L, D], in place.
+
+        Every link is updated once here, so it gets all its messages at its first features:
+        the table's support messages to every link and the robot's to the acted links are
+        one batch of ``f_e``."""
+        chain, n_rows = parts.chain, nodes.shape[0]
+        acted = nodes.index_select(0, chain.acted_rows)
+        messages = self._message(
+            torch.cat([parts.table.expand(n_rows, -1), parts.robot]),
+            torch.cat([nodes, acted]),
+            torch.cat([support_edges, parts.robot_edge]),
+        )
+        support, robot = messages[:n_rows], messages[n_rows:]
+        message = robot + support.index_select(0, chain.acted_rows)
+        nodes.index_copy_(0, chain.acted_rows, self._update(acted, message))
+        for receivers, senders, edges in chain.cause:
+            node, sender = nodes.index_select(0, receivers), nodes.index_select(0, senders)
+            message = self._message(sender, node, joint_edges.index_select(0, edges))
+            message = message + support.index_select(0, receivers)
+            nodes.index_copy_(0, receivers, self._update(node, message))
 
     def _propagate_effect(self, nodes: Tensor, joint_edges: Tensor, chain: _Chain) -> None:
         """Back from the deepest links: every link with children is updated by the sum of the
@@ -735,15 +763,20 @@ class GraphProcessNet(nn.Module):
             nodes.index_copy_(0, phase.updated, self._update(node, message))
 
     def _link_nodes(
-        self, states: Tensor, inputs: ProcessInput, parts: _InputParts | None = None
+        self,
+        states: Tensor,
+        inputs: ProcessInput,
+        parts: _InputParts | None = None,
+        relative: RelativeLinks | None = None,
     ) -> Tensor:
         """[..., C, L, NODE_DIM]: link features, is_pull, type (the latter and the turn into
-        the reference frame from ``parts`` where given)."""
+        the reference frame from ``parts``, the links there from ``relative``, where
+        given)."""
         if parts is None:
             into, tail = None, _link_tail(inputs, states.dtype)
         else:
             into, tail = parts.into, parts.link_tail
-        features = link_features(states, inputs, into)
+        features = link_features(states, inputs, into, relative)
         return torch.cat([features, tail.expand(*features.shape[:-1], 4)], -1)
 
     def _robot_node(self, inputs: ProcessInput) -> Tensor:
