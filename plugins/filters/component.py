@@ -235,13 +235,14 @@ def position_update(belief: Belief, rows: Sequence[int], measured: torch.Tensor,
 
 
 def nearest_link(points_m: FloatArray, poses: FloatArray, sizes: FloatArray) -> FloatArray:
-    """Index [N] of the link whose footprint box (size-normalised) is nearest to each point."""
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    dx = points_m[:, None, 0] - poses[None, :, 0]
-    dy = points_m[:, None, 1] - poses[None, :, 1]
+    """Index [..., N] of the link whose footprint box (size-normalised) is nearest to each
+    point: points_m [..., N, >=2], poses [..., L, 3], sizes [L, 2]."""
+    c, s = np.cos(poses[..., None, :, 2]), np.sin(poses[..., None, :, 2])  # [..., 1, L]
+    dx = points_m[..., :, None, 0] - poses[..., None, :, 0]  # [..., N, L]
+    dy = points_m[..., :, None, 1] - poses[..., None, :, 1]
     local_x, local_y = c * dx + s * dy, -s * dx + c * dy
     score = np.maximum(np.abs(local_x) / sizes[:, 0], np.abs(local_y) / sizes[:, 1])
-    return np.asarray(score.argmin(axis=1))
+    return np.asarray(score.argmin(axis=-1))
 
 
 class _LookAheadModel:
@@ -580,10 +581,7 @@ class DualFilterComponent(Component):
             offset_m += float(getattr(executor_config, "standoff_m", defaults.standoff_m))
         is_pull = np.array([isinstance(action, Pull) for action in actions])
         _, sizes = link_boxes(self.shape)
-        links = [
-            int(nearest_link(np.append(point, 0.0)[None], pose, sizes)[0])
-            for point, pose in zip(points, poses, strict=True)
-        ]
+        links = nearest_link(points[:, None], poses, sizes)[:, 0]
         return _ActionMotion(
             start_xy=points - np.where(is_pull, 0.0, offset_m)[:, None] * headings,
             yaw_rad=np.array(
@@ -595,9 +593,7 @@ class DualFilterComponent(Component):
                 "is_pull": torch.as_tensor(is_pull, dtype=DTYPE),
                 "link": torch.as_tensor(links),
                 "link_size_m": torch.as_tensor(sizes, dtype=DTYPE).expand(batch, -1, -1),
-                "link_offset": torch.as_tensor(
-                    np.stack([relative_poses(pose) for pose in poses]), dtype=DTYPE
-                ),
+                "link_offset": torch.as_tensor(relative_poses(poses), dtype=DTYPE),
             },
         )
 

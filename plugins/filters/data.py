@@ -302,11 +302,17 @@ def _link_geometry(trajectory: Trajectory) -> tuple[FloatArray, FloatArray]:
 
 
 def relative_poses(poses: FloatArray) -> FloatArray:
-    """Each planar pose [L, 3] relative to the first, in the first's frame: [L, 3]."""
-    c, s = np.cos(poses[0, 2]), np.sin(poses[0, 2])
-    rel = poses[:, :2] - poses[0, :2]
-    return np.column_stack(
-        [c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], poses[:, 2] - poses[0, 2]]
+    """Each planar pose [..., L, 3] relative to the first, in the first's frame: [..., L, 3]."""
+    first = poses[..., :1, :]
+    c, s = np.cos(first[..., 2]), np.sin(first[..., 2])  # [..., 1]
+    rel = poses[..., :2] - first[..., :2]
+    return np.stack(
+        [
+            c * rel[..., 0] + s * rel[..., 1],
+            -s * rel[..., 0] + c * rel[..., 1],
+            poses[..., 2] - first[..., 2],
+        ],
+        axis=-1,
     )
 
 
