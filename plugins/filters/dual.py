@@ -916,6 +916,23 @@ class DualFilter:
         state_white, process_white, _ = _antithetic_jointly(state_noise, process_noise)
         return self._propagate_white(belief, inputs, dt_s, state_white, process_white)
 
+    def propagate_alike(
+        self,
+        belief: Belief,
+        inputs: ProcessInput,
+        dt_s: float,
+        state_noise: Tensor,
+        process_noise: Tensor,
+    ) -> tuple[Belief, Tensor, Prediction]:
+        """``propagate`` with the same draws, state_noise [C, n] and process_noise [C, 6L],
+        for every element of a batch of beliefs [..., n] (a look-ahead of many actions):
+        the draws are made antithetic once, not once per element."""
+        state_white, process_white, _ = _antithetic_jointly(state_noise, process_noise)
+        batch = belief.mean.shape[:-1]
+        state_white = state_white.expand(*batch, *state_white.shape)
+        process_white = process_white.expand(*batch, *process_white.shape)
+        return self._propagate_white(belief, inputs, dt_s, state_white, process_white)
+
     def _propagate_white(
         self,
         belief: Belief,
