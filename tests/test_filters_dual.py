@@ -550,6 +550,25 @@ def test_batch_equals_separate_runs() -> None:
         torch.testing.assert_close(batched.cov[b], separate[b].cov, rtol=0, atol=1e-12)
 
 
+
+def test_propagate_alike_equals_propagate_with_the_draws_repeated() -> None:
+    """A batch of beliefs predicted with one set of draws, made antithetic once, is what
+    ``propagate`` gives with those draws repeated for every element."""
+    generator = torch.Generator().manual_seed(8)
+    dual = toy_filter(sigma_points=40)
+    shifts = torch.tensor([0.0, 0.1, -0.2], dtype=DTYPE)
+    beliefs = Belief(prior_belief().mean + shifts[:, None], prior_belief().cov.expand(3, 10, 10))
+    state_noise = torch.randn(40, 10, generator=generator, dtype=DTYPE)
+    process_noise = torch.randn(40, 6, generator=generator, dtype=DTYPE)
+    inputs = batch_inputs(3)
+    alike, sigma_alike, _ = dual.propagate_alike(beliefs, inputs, DT_S, state_noise, process_noise)
+    repeated = (state_noise.expand(3, -1, -1), process_noise.expand(3, -1, -1))
+    want, sigma_want, _ = dual.propagate(beliefs, inputs, DT_S, *repeated)
+    torch.testing.assert_close(sigma_alike, sigma_want, rtol=0, atol=1e-12)
+    torch.testing.assert_close(alike.mean, want.mean, rtol=0, atol=1e-12)
+    torch.testing.assert_close(alike.cov, want.cov, rtol=0, atol=1e-12)
+    assert not torch.allclose(alike.mean[0], alike.mean[1])  # the elements do differ
+
 def test_gradients_flow_from_the_posterior_to_a_model_parameter() -> None:
     accel_gain = as_tensor(ACCEL_GAIN).requires_grad_(True)
     dual = toy_filter(sigma_points=100, process=LinearProcess(accel_gain))

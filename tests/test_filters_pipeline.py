@@ -122,6 +122,13 @@ def test_nearest_link_and_relative_poses() -> None:
     points = np.array([[0.03, 0.0, 0.01], [0.1, 0.035, 0.01], [0.07, 0.0, 0.0]])
     assert nearest_link(points, poses, sizes).tolist() == [0, 1, 1]
     np.testing.assert_allclose(relative_poses(poses), [[0, 0, 0], [0.1, 0, np.pi / 2]])
+    # A batch of objects: each element as on its own.
+    turned = poses + np.array([0.2, -0.1, 0.7])
+    batch = np.stack([poses, turned, poses[::-1]])
+    batch_points = np.stack([points, points + np.array([0.2, -0.1, 0.0]), points])
+    want = [nearest_link(p, q, sizes).tolist() for p, q in zip(batch_points, batch, strict=True)]
+    assert nearest_link(batch_points, batch, sizes).tolist() == want
+    np.testing.assert_allclose(relative_poses(batch), [relative_poses(q) for q in batch])
 
 
 def _box_shape() -> ShapeEstimate:
