@@ -551,9 +551,9 @@ def test_batch_equals_separate_runs() -> None:
 
 
 
-def test_propagate_alike_equals_propagate_with_the_draws_repeated() -> None:
-    """A batch of beliefs predicted with one set of draws, made antithetic once, is what
-    ``propagate`` gives with those draws repeated for every element."""
+def test_draws_for_one_belief_serve_a_batch_as_if_repeated() -> None:
+    """A batch of beliefs predicted with one set of draws [C, n] (made antithetic once) is
+    what ``propagate`` gives with those draws repeated for every element."""
     generator = torch.Generator().manual_seed(8)
     dual = toy_filter(sigma_points=40)
     shifts = torch.tensor([0.0, 0.1, -0.2], dtype=DTYPE)
@@ -561,7 +561,7 @@ def test_propagate_alike_equals_propagate_with_the_draws_repeated() -> None:
     state_noise = torch.randn(40, 10, generator=generator, dtype=DTYPE)
     process_noise = torch.randn(40, 6, generator=generator, dtype=DTYPE)
     inputs = batch_inputs(3)
-    alike, sigma_alike, _ = dual.propagate_alike(beliefs, inputs, DT_S, state_noise, process_noise)
+    alike, sigma_alike, _ = dual.propagate(beliefs, inputs, DT_S, state_noise, process_noise)
     repeated = (state_noise.expand(3, -1, -1), process_noise.expand(3, -1, -1))
     want, sigma_want, _ = dual.propagate(beliefs, inputs, DT_S, *repeated)
     torch.testing.assert_close(sigma_alike, sigma_want, rtol=0, atol=1e-12)

@@ -520,9 +520,7 @@ class DualFilterComponent(Component):
                 process_noise = torch.randn(
                     (filter_.sigma_points, self.layout.n_pose), generator=generator, dtype=DTYPE
                 )
-                belief, _, _ = filter_.propagate_alike(
-                    belief, inputs, dt_s, state_noise, process_noise
-                )
+                belief, _, _ = filter_.propagate(belief, inputs, dt_s, state_noise, process_noise)
         means, covs = belief.mean.clone(), belief.cov.clone()  # normal tensors again
         return [(means[i], covs[i]) for i in range(batch)]
 

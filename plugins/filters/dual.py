@@ -911,26 +911,11 @@ class DualFilter:
         """Prediction step (eq. 21-26) from given standard normal draws.
 
         state_noise [..., C, n], process_noise [..., C, 6L] -> predicted belief, predicted
-        sigma points [..., C, n] (unprojected parameters) and the model's Prediction.
+        sigma points [..., C, n] (unprojected parameters) and the model's Prediction. Draws
+        [C, n] and [C, 6L] serve every element of a batch of beliefs [..., n] alike (a
+        look-ahead of many actions), made antithetic once.
         """
         state_white, process_white, _ = _antithetic_jointly(state_noise, process_noise)
-        return self._propagate_white(belief, inputs, dt_s, state_white, process_white)
-
-    def propagate_alike(
-        self,
-        belief: Belief,
-        inputs: ProcessInput,
-        dt_s: float,
-        state_noise: Tensor,
-        process_noise: Tensor,
-    ) -> tuple[Belief, Tensor, Prediction]:
-        """``propagate`` with the same draws, state_noise [C, n] and process_noise [C, 6L],
-        for every element of a batch of beliefs [..., n] (a look-ahead of many actions):
-        the draws are made antithetic once, not once per element."""
-        state_white, process_white, _ = _antithetic_jointly(state_noise, process_noise)
-        batch = belief.mean.shape[:-1]
-        state_white = state_white.expand(*batch, *state_white.shape)
-        process_white = process_white.expand(*batch, *process_white.shape)
         return self._propagate_white(belief, inputs, dt_s, state_white, process_white)
 
     def _propagate_white(
