@@ -568,6 +568,8 @@ def test_draws_for_one_belief_serve_a_batch_as_if_repeated() -> None:
     torch.testing.assert_close(alike.mean, want.mean, rtol=0, atol=1e-12)
     torch.testing.assert_close(alike.cov, want.cov, rtol=0, atol=1e-12)
     assert not torch.allclose(alike.mean[0], alike.mean[1])  # the elements do differ
+    with pytest.raises(ValueError, match="same leading dimensions"):
+        dual.propagate(beliefs, inputs, DT_S, state_noise, process_noise.expand(3, -1, -1))
 
 def test_gradients_flow_from_the_posterior_to_a_model_parameter() -> None:
     accel_gain = as_tensor(ACCEL_GAIN).requires_grad_(True)

@@ -915,6 +915,12 @@ class DualFilter:
         [C, n] and [C, 6L] serve every element of a batch of beliefs [..., n] alike (a
         look-ahead of many actions), made antithetic once.
         """
+        if state_noise.shape[:-1] != process_noise.shape[:-1]:
+            raise ValueError(
+                f"propagate: state_noise {tuple(state_noise.shape)} and process_noise "
+                f"{tuple(process_noise.shape)} need the same leading dimensions ([..., C] or "
+                "[C] for every belief)"
+            )
         state_white, process_white, _ = _antithetic_jointly(state_noise, process_noise)
         return self._propagate_white(belief, inputs, dt_s, state_white, process_white)
 
