@@ -213,37 +213,60 @@ def test_unreachable_candidates_are_dropped(tmp_path: Path) -> None:
 
 
 def test_pushes_keep_the_object_inside_the_workspace(tmp_path: Path) -> None:
-    """An object 10 cm from the workspace's near edge (y 0.2) and 10 cm pushes: a push may
-    leave its centre no nearer the edge than object_margin_m (8 cm), so only pushes heading
-    less than asin(0.2) towards the edge are kept; without the margin some go further. An
-    object 5 cm from the edge, inside the margin already, may only be pushed no nearer."""
+    """An ellipse (3 cm half-width across y) whose outline lies 7 cm from the workspace's near
+    edge (y 0.2), and 10 cm pushes: a push may leave its outline no nearer the edge than
+    object_margin_m (3 cm), so only pushes heading less than asin(0.4) towards the edge are
+    kept; without the margin some go further. An outline 1 cm from the edge, inside the
+    margin already, may only be pushed no nearer."""
 
-    def centres_after(y_m: float, **options: Any) -> np.ndarray:
+    def outlines_after(y_m: float, **options: Any) -> np.ndarray:
         scene = _scene(_link(ELLIPSE, (0.0, y_m), exponents=1.0))
         sampler = _sampler(tmp_path, samples=200, interactions=["push"], **options)
         pushes = sampler.sample(scene, np.random.default_rng(6))
-        return np.array([y_m + 0.1 * math.sin(p.pd_rad) for p in pushes])
+        return np.array([y_m - 0.03 + 0.1 * math.sin(p.pd_rad) for p in pushes])
 
-    kept = centres_after(0.30)
-    assert kept.min() >= 0.28 - 1e-9 and kept.max() > 0.35
-    assert centres_after(0.30, object_margin_m=None).min() < 0.25
-    near = centres_after(0.25)
-    assert len(near) > 20 and near.min() >= 0.25 - 1e-9
+    kept = outlines_after(0.30)
+    assert kept.min() >= 0.23 - 1e-9 and kept.max() > 0.32
+    assert kept.min() < 0.26  # pushes towards the edge are kept while they stay 3 cm in
+    assert outlines_after(0.30, object_margin_m=None).min() < 0.20
+    near = outlines_after(0.24)
+    assert len(near) > 20 and near.min() >= 0.21 - 1e-9
+
+
+def test_long_objects_keep_their_far_end_in_reach(tmp_path: Path) -> None:
+    """The margin is measured to the outline: a 30 cm box along y, its centre 20 cm and its
+    far end 5 cm from the workspace's far edge (y 0.8), may be pushed at most 2 cm further
+    that way (sin(pd) <= 0.2 for 10 cm pushes), though its centre would stay far inside.
+    Without the margin, pushes into its near end head straight at the edge."""
+    upright = _link(BOX, (0.0, 0.0))
+    pose = upright.world_from_sq.copy()
+    pose[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    pose[:2, 3] = [0.0, 0.60]
+    scene = _scene(Superquadric(BOX, upright.exponents, pose))
+
+    def headings_y(**options: Any) -> np.ndarray:
+        sampler = _sampler(tmp_path, samples=200, interactions=["push"], **options)
+        pushes = sampler.sample(scene, np.random.default_rng(2))
+        return np.array([math.sin(push.pd_rad) for push in pushes])
+
+    kept = headings_y()
+    assert len(kept) > 10 and kept.max() <= 0.2 + 1e-9
+    assert headings_y(object_margin_m=None).max() > 0.9
 
 
 def test_pulls_keep_the_object_inside_the_workspace(tmp_path: Path) -> None:
-    """Pulls heading anywhere (spread pi) on an object 10 cm from the near edge: those that
-    would bring its centre within 8 cm of the edge are dropped, so a skill of pulls alone can
-    go on pulling (before, pulls towards the robot walked it out of reach)."""
+    """Pulls heading anywhere (spread pi) on an object whose outline is 7 cm from the near
+    edge: those that would bring it within 3 cm of the edge are dropped, so a skill of pulls
+    alone can go on pulling (before, pulls towards the robot walked it out of reach)."""
     scene = _scene(_link(ELLIPSE, (0.0, 0.30), exponents=1.0))
     options = {"samples": 200, "interactions": ["pull"], "pull_spread_rad": math.pi}
     pulls = _sampler(tmp_path, **options).sample(scene, np.random.default_rng(6))
-    after = np.array([0.30 + 0.1 * math.sin(p.pd_rad) for p in pulls])
-    assert len(pulls) > 20 and after.min() >= 0.28 - 1e-9 and after.max() > 0.35
+    after = np.array([0.27 + 0.1 * math.sin(p.pd_rad) for p in pulls])
+    assert len(pulls) > 20 and after.min() >= 0.23 - 1e-9 and after.max() > 0.32
     free = _sampler(tmp_path, object_margin_m=None, **options).sample(
         scene, np.random.default_rng(6)
     )
-    assert min(0.30 + 0.1 * math.sin(p.pd_rad) for p in free) < 0.25
+    assert min(0.27 + 0.1 * math.sin(p.pd_rad) for p in free) < 0.20
 
 
 def test_pushes_keep_within_the_spread_of_the_chosen_direction(tmp_path: Path) -> None:

@@ -159,8 +159,9 @@ class SuperquadricAffordances(OutlineSampler):
             "(the executor's standoff_m + pusher_offset_m)",
         )  # fmt: skip
         object_margin_m: float | None = Field(
-            0.08, ge=0, description="as in actions.outline (there off by default): pushes "
-            "in every direction leave enough candidates to keep the object in reach",
+            0.03, ge=0, description="as in actions.outline (there off by default), measured "
+            "to the fitted links' outlines: enough for the fingers to come down behind the "
+            "object (approach_clearance_m) and push it back from any edge",
         )  # fmt: skip
         finger_footprint_m: tuple[NonNegativeFloat, NonNegativeFloat] = FINGER_FOOTPRINT_FIELD
         finger_clearance_m: float = Field(
@@ -203,8 +204,8 @@ class SuperquadricAffordances(OutlineSampler):
     ) -> list[Action]:
         """``samples`` draws of a kind in ``kinds``, a link and an outline point each."""
         links = self._links(shape)
-        outlines = {index: link_outline(shape.links[index]) for index in links}
-        object_xy = np.asarray(shape.initial_poses, dtype=np.float64)[:, :2].mean(axis=0)
+        outlines = [link_outline(link) for link in shape.links]
+        object_outline_xy = np.concatenate([points for points, _ in outlines])
         cloud_xy = np.asarray(shape.cloud.points_m, dtype=np.float64)[:, :2]
         actions: list[Action] = []
         blocked = 0
@@ -221,7 +222,7 @@ class SuperquadricAffordances(OutlineSampler):
             )
             if action is None:
                 blocked += 1
-            elif self._reachable(action, object_xy):
+            elif self._reachable(action, object_outline_xy):
                 actions.append(action)
         log.debug("%d of %d candidates kept", len(actions), self.config.samples)
         if not actions:

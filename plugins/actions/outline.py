@@ -64,10 +64,10 @@ class OutlineSampler(Component):
         )
         """((x min, x max), (y min, y max)): the gripper's path must stay inside."""
         object_margin_m: float | None = Field(
-            None, ge=0, description="drop pushes and pulls that would leave the object's "
-            "centre less than this inside the workspace, or nearer its edge than it is where "
-            "it is that near already (it moves about as far as the gripper), so that later "
-            "interactions can still reach it; null: no check",
+            None, ge=0, description="drop pushes and pulls that would leave any part of the "
+            "object's outline less than this inside the workspace, or nearer its edge than it "
+            "is where it is that near already (the object moves about as far as the gripper), "
+            "so that later interactions can still get behind it; null: no check",
         )  # fmt: skip
         pull_towards_rad: float = Field(
             -np.pi / 2, description="mean pull direction (-y: towards the robot)"
@@ -88,20 +88,20 @@ class OutlineSampler(Component):
         # The segmented object cloud of the shape estimate when there is one (no clutter).
         cloud = scene.shape.cloud if scene.shape is not None else scene.cloud
         hull_xy = self.outline(cloud.points_m)
-        centre_xy = hull_xy.mean(axis=0)
         kinds = rng.choice(self.config.interactions, size=self.config.samples)
         actions: list[Action] = []
         for kind in kinds:
             action = self._push(hull_xy, rng) if kind == "push" else self._pull(hull_xy, rng)
-            if action is not None and self._reachable(action, centre_xy):
+            if action is not None and self._reachable(action, hull_xy):
                 actions.append(action)
         return actions
 
-    def _reachable(self, action: Action, object_xy: FloatArray) -> bool:
+    def _reachable(self, action: Action, outline_xy: FloatArray) -> bool:
         """Whether the interaction's start and end points lie in the workspace, a push heads
-        where ``push_towards_rad`` allows, and the interaction leaves the object's centre
-        ``object_xy`` [2] ``object_margin_m`` inside the workspace (or, where it is nearer the
-        edge already, no nearer than before)."""
+        where ``push_towards_rad`` allows, and the interaction, moving the object's outline
+        outline_xy [K, 2] as far as the gripper, leaves all of it ``object_margin_m`` inside
+        the workspace (or, where part of it is nearer the edge already, no nearer than
+        before)."""
         towards = self.config.push_towards_rad
         if isinstance(action, Push) and towards is not None:
             off_rad = np.angle(np.exp(1j * (action.pd_rad - towards)))
@@ -116,8 +116,8 @@ class OutlineSampler(Component):
         margin = self.config.object_margin_m
         if margin is None:
             return True
-        after = depth_inside(object_xy + travel, self.config.workspace_xy_m)
-        return after >= min(margin, depth_inside(object_xy, self.config.workspace_xy_m))
+        after = depth_inside(outline_xy + travel, self.config.workspace_xy_m)
+        return after >= min(margin, depth_inside(outline_xy, self.config.workspace_xy_m))
 
     def outline(self, points_m: FloatArray) -> FloatArray:
         """Counter-clockwise convex outline [K, 2] of the points above the table."""
@@ -165,14 +165,15 @@ class OutlineSampler(Component):
 
 def in_workspace(points_xy: FloatArray, workspace_xy_m: Workspace) -> bool:
     """Whether every point [N, 2] lies in the workspace."""
-    return all(depth_inside(point, workspace_xy_m) >= 0.0 for point in points_xy)
+    return depth_inside(points_xy, workspace_xy_m) >= 0.0
 
 
-def depth_inside(point_xy: FloatArray, workspace_xy_m: Workspace) -> float:
-    """Distance (m) of a point [2] inside the workspace's nearest edge (negative outside)."""
+def depth_inside(points_xy: FloatArray, workspace_xy_m: Workspace) -> float:
+    """Distance (m) of the point [2] or points [N, 2] inside the workspace's nearest edge
+    (negative outside): the smallest over the points."""
     (x_min, x_max), (y_min, y_max) = workspace_xy_m
-    x, y = float(point_xy[0]), float(point_xy[1])
-    return min(x - x_min, x_max - x, y - y_min, y_max - y)
+    x, y = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2).T
+    return float(np.min([x - x_min, x_max - x, y - y_min, y_max - y]))
 
 
 def chord(hull_xy: FloatArray, point: FloatArray, angle_rad: float) -> tuple[FloatArray, float]:
