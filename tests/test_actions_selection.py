@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from pydantic import ValidationError
+from scipy.stats import spearmanr
 from simctx import TestContext
 from vistac.errors import ConfigError, DataError
 from vistac.plugins.actions.affordances import (
@@ -533,3 +534,28 @@ def test_explore_active_skill_runs(
     )  # fmt: skip
     assert code == 0, err
     assert (tmp_path / "run" / "episodes" / "0000").is_dir() and "episode 0" in out
+
+
+def test_info_gain_look_ahead_has_enough_points_for_three_links(tmp_path: Path) -> None:
+    """A three-link object has 32 state entries: 32 look-ahead points cannot be whitened and
+    their gains rank the candidates about as a coin would; the selector uses 48 (1.5 times the
+    entries, rounded up to even), whose gains rank like those of 144 points."""
+    checkpoint = ROOT / "skills/checkpoints/gnn_push.pt"
+    specs: dict[str, Any] = {
+        "model": {"plugin": "filters.gnn", "with": {"checkpoint": str(checkpoint), "hidden": 32}},
+        "filter": {"plugin": "filters.dual"},
+        "planner": {"plugin": "actions.info_gain"},
+        "reference": {"plugin": "actions.info_gain", "with": {"sigma_points": 144}},
+        "affordances": {"plugin": "actions.affordances", "with": {"samples": 96}},
+    }
+    ctx = build_components(specs, tmp_path)
+    scene = _scene(*[_link(BOX / 3, (x_m, 0.45)) for x_m in (-0.1, 0.0, 0.1)])
+    ctx.component("filter").initialise(scene)
+    planner, reference = ctx.component("planner"), ctx.component("reference")
+    assert planner.sigma_points() == 48 and reference.sigma_points() == 144
+    candidates = ctx.component("affordances").sample(scene, np.random.default_rng(0))[:24]
+    assert len(candidates) == 24
+    best = reference.gains(candidates).numpy()
+    assert spearmanr(planner.gains(candidates).numpy(), best).correlation > 0.85
+    planner.sigma_points = lambda: 32  # what the configured count alone gave
+    assert spearmanr(planner.gains(candidates).numpy(), best).correlation < 0.5

