@@ -313,6 +313,20 @@ def test_the_com_prior_is_uniform_over_the_fitted_footprint() -> None:
     np.testing.assert_allclose(belief.cov[block][:, block].numpy(), cov_m2[0])
 
 
+def test_too_few_sigma_points_for_the_state_are_warned_of(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A box's state has 10 entries: 10 points cannot be whitened (the parameters would
+    drift), 11 can."""
+    scene = Scene(_box_shape().cloud, _box_shape())
+    for count, warned in ((10, True), (11, False)):
+        caplog.clear()
+        specs = {"model": {"plugin": "filters.gnn"},
+                 "filter": {"plugin": "filters.dual", "with": {"sigma_points": count}}}  # fmt: skip
+        build_components(specs, tmp_path).component("filter").initialise(scene)
+        assert ("cannot be whitened" in caplog.text) is warned, count
+
+
 def test_filter_needs_a_process_model(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="needs a process_model"):
         build_components({"filter": {"plugin": "filters.dual"}}, tmp_path).component("filter")

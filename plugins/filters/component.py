@@ -434,6 +434,13 @@ class DualFilterComponent(Component):
                 f"the process model handles {self.model.n_links} link(s) but the object has "
                 f"{self.layout.n_links}; use filters.gnn or a model trained for this many links"
             )
+        if self.config.sigma_points <= self.layout.size:
+            log.warning(
+                "filters.dual: %d sigma points for a state of %d entries cannot be whitened: "
+                "the parameters will drift and shrink by sampling error alone; use more than "
+                "%d (default 100)", self.config.sigma_points, self.layout.size,
+                self.layout.size,
+            )  # fmt: skip
         pose_twist = np.column_stack([poses, np.zeros_like(poses)])
         com = footprint_com(scene.shape) if self.config.prior.com_in_shape else None
         self.belief = prior_belief(pose_twist, self.config.prior, self.layout, com)
