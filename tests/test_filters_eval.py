@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 from vistac.cli import main
 from vistac.errors import DataError
 from vistac.objects import generate_configurations, object_from_dict
@@ -18,6 +19,7 @@ from vistac.plugins.filters.evaluate import (
     calibration_table,
     chosen_variants,
     first_poses,
+    learned_model_options,
     log_score,
     match_links,
     normalised_errors,
@@ -373,6 +375,30 @@ def test_plan_runs_sets_model_and_selector_per_variant(tmp_path: Path) -> None:
     assert "no FF checkpoint for 2 link(s)" in skipped["a-ff"]
     assert "homogeneous objects only (articulated)" in skipped["a-analytical"]
     assert run_dir_of(tmp_path, plans[1]) == tmp_path / "runs/rect2/u-gnn"
+
+
+def test_the_skills_own_learned_model_options_go_to_the_gnn_and_ff_variants(
+    tmp_path: Path,
+) -> None:
+    folder = _checkpoints(tmp_path / "ckpt")
+    skill = tmp_path / "skill.yaml"
+    data = yaml.safe_load((ROOT / "skills/explore_pull.yaml").read_text(encoding="utf-8"))
+    skill.write_text(yaml.safe_dump(data), encoding="utf-8")
+    assert learned_model_options(data) == {"mirror_average": True}
+    assert learned_model_options({"components": {"model": {"plugin": "filters.analytical"}}}) == {}
+    options = EvalOptions(skill=skill, out=tmp_path, checkpoints=folder,
+                          variants=("a-gnn", "a-ff", "a-analytical"))  # fmt: skip
+    models = [
+        json.loads(override.split("=", 1)[1])
+        for plan in plan_runs(options, [ROOT / "skills/objects/rect2.yaml"], "push")
+        for override in plan.overrides
+        if override.startswith("components.model=")
+    ]
+    assert [m["plugin"] for m in models] == ["filters.gnn", "filters.ff", "filters.analytical"]
+    assert models[0]["with"] == {"mirror_average": True, "checkpoint": str(folder / "gnn_push.pt"),
+                                 "hidden": 32}  # fmt: skip
+    assert models[1]["with"]["mirror_average"] is True
+    assert "with" not in models[2]
 
 
 def test_variant_choice_and_the_skills_own_info_gain_settings(tmp_path: Path) -> None:

@@ -57,6 +57,7 @@ from vistac.objects import (
     write_configurations,
 )
 from vistac.plugins.filters.component import Prior
+from vistac.plugins.filters.models import LearnedModelConfig
 from vistac.types import GaussianBelief
 
 log = logging.getLogger(__name__)
@@ -576,8 +577,11 @@ def ff_checkpoint(folder: Path, kind: str, n_links: int) -> Path | None:
     return None
 
 
-def model_override(model: str, spec: ObjectSpec, folder: Path, kind: str) -> tuple[str | None, str]:
-    """The ``components.model=...`` override of ``model`` for ``spec``, or (None, why not)."""
+def model_override(
+    model: str, spec: ObjectSpec, folder: Path, kind: str, learned: dict[str, Any] | None = None
+) -> tuple[str | None, str]:
+    """The ``components.model=...`` override of ``model`` for ``spec``, or (None, why not);
+    ``learned`` options (:func:`learned_model_options`) go to the GNN and FF models."""
     n_links = len(spec.links)
     if model == "analytical":
         if spec.type != "homogeneous":
@@ -587,15 +591,23 @@ def model_override(model: str, spec: ObjectSpec, folder: Path, kind: str) -> tup
         path: Path | None = folder / f"gnn_{kind}.pt"
         if path is None or not path.is_file():
             return None, f"no GNN checkpoint {path}"
-        settings: dict[str, Any] = {"checkpoint": str(path.resolve())}
+        settings: dict[str, Any] = {**(learned or {}), "checkpoint": str(path.resolve())}
     else:
         path = ff_checkpoint(folder, kind, n_links)
         if path is None:
             want = f"ff{n_links}/ff_{kind}.pt"
             return None, f"no FF checkpoint for {n_links} link(s) in {folder} ({want})"
-        settings = {"checkpoint": str(path.resolve()), "n_links": n_links}
+        settings = {**(learned or {}), "checkpoint": str(path.resolve()), "n_links": n_links}
     settings |= {k: v for k, v in _architecture(path).items() if k == "hidden"}
     return "components.model=" + json.dumps({"plugin": f"filters.{model}", "with": settings}), ""
+
+
+def learned_model_options(skill_data: dict[str, Any]) -> dict[str, Any]:
+    """The skill's own process-model options that every learned model takes (such as
+    ``mirror_average``), less the checkpoint and architecture the variant sets."""
+    model = (skill_data.get("components") or {}).get("model") or {}
+    shared = set(LearnedModelConfig.model_fields) - {"checkpoint", "hidden"}
+    return {key: value for key, value in (model.get("with") or {}).items() if key in shared}
 
 
 MODEL_OPTION_PREFIX = "components.model.with."
@@ -606,6 +618,7 @@ def plan_runs(options: EvalOptions, objects: Sequence[Path], kind: str) -> list[
     """Every (object, variant) run with its ``--set`` overrides or its skip reason."""
     folder = options.checkpoints or options.skill.parent / "checkpoints"
     skill_data = read_skill(options.skill)
+    learned = learned_model_options(skill_data)
     # The variant sets the whole model; the user's options of it refine that, after it.
     model_options = [o for o in options.overrides if o.startswith(MODEL_OPTION_PREFIX)]
     common = [o for o in options.overrides if not o.startswith(MODEL_OPTION_PREFIX)]
@@ -619,7 +632,7 @@ def plan_runs(options: EvalOptions, objects: Sequence[Path], kind: str) -> list[
         spec = load_object(path)
         for variant in chosen_variants(options):
             plan = RunPlan(path, spec, variant)
-            model, why = model_override(plan.model, spec, folder, kind)
+            model, why = model_override(plan.model, spec, folder, kind, learned)
             if model is None:
                 plan.skipped = why
             else:
