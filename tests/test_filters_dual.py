@@ -419,6 +419,11 @@ def test_on_load_ridge_keeps_each_load_at_the_mean_ratio_in_pushes_only() -> Non
     torch.testing.assert_close(moved[1], states[1], rtol=0, atol=0)  # the pull
     pose_and_joints = [*range(layout.n_pose), layout.size - 1]
     torch.testing.assert_close(moved[..., pose_and_joints], states[..., pose_and_joints])
+    # a batch of pushes only, or of pulls only, as each element of the mixed batch
+    only_push = on_load_ridge(states[:1], layout, reference[:1], push[:1])
+    torch.testing.assert_close(only_push, moved[:1], rtol=0, atol=0)
+    only_pull = on_load_ridge(states[1:], layout, reference[1:], push[1:])
+    torch.testing.assert_close(only_pull, states[1:], rtol=0, atol=0)
 
 
 class MassOnlyForce(LinearProcess):

@@ -516,6 +516,25 @@ def test_unexplained_entries_are_pixels_nearer_than_every_rendering() -> None:
     assert not bool(unexplained_entries(observation, expected, 4, None).any())
 
 
+def test_unexplained_entries_among_candidates_equal_the_dense_test() -> None:
+    """With candidates (different ones per batch element) only their columns are compared;
+    the mask must equal the nearer-than-every-rendering test of all pixels, and-ed with them."""
+    from vistac.plugins.filters.observation import unexplained_entries
+
+    generator = torch.Generator().manual_seed(3)
+    n_depth, k = 50, 52
+    expected = torch.rand((2, 7, k), generator=generator, dtype=DTYPE)
+    observation = torch.rand((2, k), generator=generator, dtype=DTYPE) - 0.3
+    candidates = torch.rand((2, n_depth), generator=generator) < 0.3
+    dense = observation[..., :n_depth] < expected[..., :n_depth].amin(-2) - 0.01
+    mask = unexplained_entries(observation, expected, n_depth, 0.01, candidates)
+    assert mask[..., :n_depth].tolist() == (dense & candidates).tolist()
+    assert not bool(mask[..., n_depth:].any())
+    assert bool(mask.any()) and not bool((mask[..., :n_depth] & ~candidates).any())
+    none = torch.zeros_like(candidates)
+    assert not bool(unexplained_entries(observation, expected, n_depth, 0.01, none).any())
+
+
 def test_world_points_invert_the_projection() -> None:
     proj = projector(cloud_at([(10, 20)], 0.04))
     depth = torch.full((64 * 64,), CAMERA_HEIGHT_M - 0.03, dtype=DTYPE)

@@ -254,12 +254,15 @@ def on_load_ridge(states: Tensor, layout: StateLayout, reference: Tensor, push: 
     learned of m and f apart (from the training's spread of both) cannot make the belief
     wander along that curve.
     """
+    if not bool(push.any()):
+        return states.clone()
     params = layout.link_parameters(states)
     load = params[..., 0] * params[..., 1]  # [..., C, L]
     mean = layout.link_parameters(reference).clamp_min(POSITIVE_FLOOR)
     ratio = (mean[..., 0] / mean[..., 1]).unsqueeze(-2)  # [..., 1, L]
-    moved = torch.stack([(load * ratio).sqrt(), (load / ratio).sqrt()], -1)
-    mass_friction = torch.where(push[..., None, None, None], moved, params[..., :2])
+    mass_friction = torch.stack([(load * ratio).sqrt(), (load / ratio).sqrt()], -1)
+    if not bool(push.all()):
+        mass_friction = torch.where(push[..., None, None, None], mass_friction, params[..., :2])
     links = torch.cat([mass_friction, params[..., 2:]], -1).flatten(-2)
     joints = layout.joint_friction(states)
     return torch.cat([states[..., layout.pose_slice], links, joints], -1)

@@ -160,7 +160,8 @@ class DepthProjector:
         self._local, self._link_points = self._link_coordinates(points, links, poses0, depth_m)
         self._footprint = self._footprint_offsets(splat_px, self.intrinsics.width + 2 * splat_px)
         rays = torch.as_tensor(self.intrinsics.pixel_rays(), dtype=DTYPE)  # unit depth
-        self._rays_world = (rays @ rotation_wc.T).reshape(-1, 3)  # [H W, 3]
+        # [3, H W]: each pixel's ray, axis by axis (ops with 3 entries innermost are slow)
+        self._rays_world = (rays @ rotation_wc.T).reshape(-1, 3).T.contiguous()
         self._camera_origin_m = translation_wc
         self.object_top_m = float(points[:, 2].max()) if points.numel() else 0.0
         """Height of the highest cloud point above the table plane (m)."""
@@ -267,7 +268,7 @@ class DepthProjector:
     def _table_depth(self, translation_wc: Tensor) -> Tensor:
         """Depth of the plane z = 0 along each pixel's ray, ``max_range_m`` where the ray
         misses it or meets it beyond the range: [H, W]."""
-        rise_m = self._rays_world[:, 2]  # world z change per metre of depth
+        rise_m = self._rays_world[2]  # world z change per metre of depth
         depth_m = (-translation_wc[2] / rise_m).reshape(self.height_px, self.width_px)
         hits = depth_m.isfinite() & (depth_m > 0.0) & (depth_m <= self.max_range_m)
         return torch.where(hits, depth_m, torch.full_like(depth_m, self.max_range_m))
@@ -275,7 +276,14 @@ class DepthProjector:
     def world_points(self, depth_m: Tensor) -> Tensor:
         """The world points the pixels of flattened depth images [..., H*W] (m) see:
         [..., H*W, 3]."""
-        return self._camera_origin_m + depth_m.unsqueeze(-1) * self._rays_world
+        return torch.stack(self._world_coordinates(depth_m), -1)
+
+    def _world_coordinates(self, depth_m: Tensor) -> tuple[Tensor, ...]:
+        """x, y and z (m) [..., H*W] of ``world_points``."""
+        return tuple(
+            origin + depth_m * ray
+            for origin, ray in zip(self._camera_origin_m, self._rays_world, strict=True)
+        )
 
     def robot_pixels(
         self, depth_m: Tensor, tcp_xy_m: Tensor, radius_m: float, margin_m: float
@@ -284,10 +292,11 @@ class DepthProjector:
         position tcp_xy_m [..., 2]: bool [..., H*W]. The robot is whatever is higher than
         the object's top (``object_top_m``) by more than ``margin_m`` (the arm, the palm), or
         within ``radius_m`` of the TCP in the table plane (the fingers)."""
-        points = self.world_points(depth_m)
-        above = points[..., 2] > self.object_top_m + margin_m
-        near = (points[..., :2] - tcp_xy_m.unsqueeze(-2)).square().sum(-1) < radius_m**2
-        return above | near
+        x_m, y_m, z_m = self._world_coordinates(depth_m)
+        above = z_m > self.object_top_m + margin_m
+        dx_m = x_m - tcp_xy_m[..., :1]
+        dy_m = y_m - tcp_xy_m[..., 1:]
+        return above | (dx_m * dx_m + dy_m * dy_m < radius_m**2)
 
     @property
     def height_px(self) -> int:
@@ -490,9 +499,16 @@ def unexplained_entries(
     mask = torch.zeros(observation.shape, dtype=torch.bool, device=observation.device)
     if margin_m is None:
         return mask
-    nearest = expected[..., :n_depth].amin(-2)
-    nearer = observation[..., :n_depth] < nearest - margin_m
-    mask[..., :n_depth] = nearer if candidates is None else nearer & candidates
+    if candidates is None:
+        nearest = expected[..., :n_depth].amin(-2)
+        mask[..., :n_depth] = observation[..., :n_depth] < nearest - margin_m
+        return mask
+    # Only the candidates' columns: the minimum over the points of every column of a
+    # [C, 4096] image stack took longer than the rest of this test together.
+    columns = candidates.reshape(-1, n_depth).any(0).nonzero()[:, 0]
+    nearest = expected.index_select(-1, columns).amin(-2)
+    nearer = observation.index_select(-1, columns) < nearest - margin_m
+    mask[..., columns] = nearer & candidates.index_select(-1, columns)
     return mask
 
 
