@@ -248,6 +248,12 @@ def _check_touch_explorer(explorer: Any, advance: Advance) -> None:
     )
 
 
+def _check_process_model(model: Any, advance: Advance) -> None:
+    from vistac.plugins.filters.conformance import check_process_model
+
+    check_process_model(model)
+
+
 _CHECKS: dict[str, Callable[[Any, Advance], None]] = {
     "world": _check_world,
     "arm": _check_arm,
@@ -260,4 +266,5 @@ _CHECKS: dict[str, Callable[[Any, Advance], None]] = {
     "touch_probe": _check_touch_probe,
     "touch_estimator": _check_touch_estimator,
     "touch_explorer": _check_touch_explorer,
+    "process_model": _check_process_model,
 }

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pytest
+import torch
 from conftest import SKILLS
+from torch import Tensor
 from vistac.pluginmanager import Plugins
+from vistac.plugins.filters.state import Prediction
 from vistac.testing import build_components, check_component, check_component_class
 from vistac.types import ArmState
 
@@ -50,3 +54,65 @@ def test_conformance_catches_a_speeding_arm(plugins: Plugins, tmp_path: Path) ->
     arm.state = speeding_state
     with pytest.raises(AssertionError, match="above the cap"):
         check_component(arm, advance=ctx.clock.advance)
+
+
+PROCESS_MODELS = {
+    "gnn": {"plugin": "filters.gnn", "with": {"hidden": 16}},
+    "gnn shipped": {
+        "plugin": "filters.gnn",
+        "with": {"checkpoint": str(SKILLS / "checkpoints/gnn_push.pt"), "hidden": 32},
+    },
+    "gnn mirror_average": {"plugin": "filters.gnn", "with": {"hidden": 16, "mirror_average": True}},
+    "ff 1 link": {"plugin": "filters.ff", "with": {"hidden": 16, "n_links": 1}},
+    "ff 2 links": {"plugin": "filters.ff", "with": {"hidden": 16, "n_links": 2}},
+    "analytical": {"plugin": "filters.analytical"},
+}
+
+
+@pytest.mark.parametrize("name", PROCESS_MODELS)
+def test_shipped_process_models_conform(name: str, plugins: Plugins, tmp_path: Path) -> None:
+    ctx = build_components({"model": PROCESS_MODELS[name]}, tmp_path, plugins=plugins)
+    check_component(ctx.component("model"))
+
+
+class _Broken:
+    """The analytical model with one promise broken: what the process-model check must catch."""
+
+    kind = "process_model"
+    n_links = 1
+
+    def __init__(self, model: Any, flaw: str) -> None:
+        self.model, self.flaw = model, flaw
+
+    def predict(self, states: Tensor, inputs: Any, dt_s: float) -> Prediction:
+        prediction = self.model.predict(states, inputs, dt_s)
+        pose, force, var = prediction.pose, prediction.force_n, prediction.process_var
+        if self.flaw == "mutates":
+            states[..., 0] += 1e-3
+        elif self.flaw == "couples points":  # a point's prediction depends on the others
+            pose = pose + states[..., :6].mean(-2, keepdim=True)
+        elif self.flaw == "float32":
+            force = force.float()
+        elif self.flaw == "random":
+            pose = pose + 1e-3 * torch.randn_like(pose)
+        elif self.flaw == "variance shape":
+            var = var[..., :3]
+        return Prediction(pose, force, var)
+
+
+@pytest.mark.parametrize(
+    ("flaw", "message"),
+    [
+        ("mutates", "must not change the states"),
+        ("couples points", "may depend on its own state and inputs only"),
+        ("float32", "force_n must be float64"),
+        ("random", "must give the same pose"),
+        ("variance shape", "process_var: expected one of"),
+    ],
+)
+def test_process_model_check_catches_a_broken_model(
+    flaw: str, message: str, plugins: Plugins, tmp_path: Path
+) -> None:
+    ctx = build_components({"model": PROCESS_MODELS["analytical"]}, tmp_path, plugins=plugins)
+    with pytest.raises(AssertionError, match=message):
+        check_component(_Broken(ctx.component("model"), flaw))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -45,6 +46,7 @@ def test_not_found_until_installed(installed: Path) -> None:
         "plugins", env={"PYTHONPATH": str(installed), "VISTAC_DISABLE_PLUGIN_AUTOLOAD": "0"}
     )
     assert "example.noisy_camera" in present.stdout and "[example]" in present.stdout
+    assert "example.rigid_push" in present.stdout
 
 
 def test_skill_uses_the_example_camera_and_observer(installed: Path, tmp_path: Path) -> None:
@@ -70,3 +72,37 @@ def test_skill_uses_the_example_camera_and_observer(installed: Path, tmp_path: P
 
     depth = np.load(out / "views/0000.npz", allow_pickle=False)["depth_m"]
     assert np.isnan(depth).mean() > 0.04
+
+
+CHECK_MODEL = """
+import tempfile
+from pathlib import Path
+from vistac.testing import build_components, check_component
+ctx = build_components({"model": {"plugin": "example.rigid_push"}}, Path(tempfile.mkdtemp()))
+check_component(ctx.component("model"))
+print("conforms")
+"""
+
+
+def test_the_example_process_model_conforms(installed: Path) -> None:
+    """A process model written outside vistac passes the process-model check as installed."""
+    env = {**os.environ, "PYTHONPATH": str(installed), "VISTAC_DISABLE_PLUGIN_AUTOLOAD": "0"}
+    result = subprocess.run(
+        [sys.executable, "-c", CHECK_MODEL], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert result.returncode == 0 and "conforms" in result.stdout, result.stderr
+
+
+def test_the_dual_filter_runs_the_example_process_model(installed: Path, tmp_path: Path) -> None:
+    """rigid_push.yaml: the dual filter updates the belief through the example's model; its
+    finger force shows the friction load, so the std of m and f shrink from the prior's."""
+    out = tmp_path / "out"
+    result = run_vistac(
+        "-q", "run", str(EXAMPLE / "rigid_push.yaml"), "--out", str(out),
+        env={"PYTHONPATH": str(installed), "VISTAC_DISABLE_PLUGIN_AUTOLOAD": "0"},
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "success" and summary["episodes"]
+    for name in ("m_0", "f_0"):
+        assert summary["belief"][name]["std"] < 0.7 * summary["prior"][name]["std"], name

@@ -14,6 +14,7 @@ _files: dict[str, tuple[IO[str], Any]] = {}
 def vistac_register(registry: Any) -> None:
     # Imported only when a skill uses it.
     registry.add("camera", "example.noisy_camera", "vistac_example.noisy_camera:NoisyCamera")
+    registry.add("process_model", "example.rigid_push", "vistac_example.rigid_push:RigidPush")
 
 
 @hookimpl
