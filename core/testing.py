@@ -30,6 +30,7 @@ from vistac.skill import validate_skill
 from vistac.types import (
     RGBD,
     ArmState,
+    FloatArray,
     GripperState,
     PixelWindow,
     PointCloud,
@@ -248,6 +249,68 @@ def _check_touch_explorer(explorer: Any, advance: Advance) -> None:
     )
 
 
+BOX_HALF_M = np.array([0.045, 0.03, 0.025])
+BOX_POSE = (0.02, 0.45, 0.3)
+"""The reference object of the shape-estimator check: a 90 x 60 x 50 mm box on the table at
+(x_m, y_m, yaw_rad)."""
+
+
+def reference_box_cloud(spacing_m: float = 0.004) -> PointCloud:
+    """The surface a camera above sees of the box ``BOX_POSE``: its top and four sides, points
+    ``spacing_m`` apart (world frame)."""
+    (a, b, c), (x_m, y_m, yaw) = BOX_HALF_M, BOX_POSE
+
+    def grid(u_half: float, v_half: float) -> tuple[FloatArray, FloatArray]:
+        u = np.arange(-u_half, u_half + 1e-9, spacing_m)
+        v = np.arange(-v_half, v_half + 1e-9, spacing_m)
+        uu, vv = np.meshgrid(u, v)
+        return uu.ravel(), vv.ravel()
+
+    faces = []
+    u, v = grid(a, b)
+    faces.append(np.column_stack([u, v, np.full(u.size, c)]))  # top
+    u, w = grid(a, c)
+    for side in (-b, b):
+        faces.append(np.column_stack([u, np.full(u.size, side), w]))
+    v, w = grid(b, c)
+    for side in (-a, a):
+        faces.append(np.column_stack([np.full(v.size, side), v, w]))
+    local = np.concatenate(faces) + np.array([0.0, 0.0, c])  # standing on the table
+    turn = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    world = local.copy()
+    world[:, :2] = local[:, :2] @ turn.T + np.array([x_m, y_m])
+    return PointCloud(world)
+
+
+def _check_shape_estimator(estimator: Any, advance: Advance) -> None:
+    cloud = reference_box_cloud()
+    estimate = estimator.fit(cloud)
+    assert isinstance(estimate, ShapeEstimate), "fit() returns a ShapeEstimate"
+    count = len(estimate.links)
+    assert count >= 1 and all(isinstance(link, Superquadric) for link in estimate.links), (
+        "a ShapeEstimate has at least one Superquadric link"
+    )
+    poses = np.asarray(estimate.initial_poses, dtype=np.float64)
+    assert poses.shape == (count, 3) and np.all(np.isfinite(poses)), (
+        "initial_poses is finite [L, 3], one (x, y, theta) per link"
+    )
+    std = np.asarray(estimate.uncertainty, dtype=np.float64)
+    assert std.ndim == 2 and len(std) == count and np.all(np.isfinite(std)) and np.all(std >= 0), (
+        "uncertainty is [L, K], finite and non-negative"
+    )
+    for link in estimate.links:
+        assert np.all(np.isfinite(link.scale_m)) and np.all(link.scale_m > 0), "scale_m > 0"
+        rotation = np.asarray(link.world_from_sq)[:3, :3]
+        assert np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6), (
+            "world_from_sq is a rigid transform"
+        )
+    largest = max(range(count), key=lambda i: float(np.prod(estimate.links[i].scale_m)))
+    offset_m = float(np.hypot(*(poses[largest, :2] - np.array(BOX_POSE[:2]))))
+    assert offset_m < 0.01, (
+        f"the largest link's centre lies {1e3 * offset_m:.1f} mm from the box's (over 10 mm)"
+    )
+
+
 def _check_process_model(model: Any, advance: Advance) -> None:
     from vistac.plugins.filters.conformance import check_process_model
 
@@ -267,4 +330,5 @@ _CHECKS: dict[str, Callable[[Any, Advance], None]] = {
     "touch_estimator": _check_touch_estimator,
     "touch_explorer": _check_touch_explorer,
     "process_model": _check_process_model,
+    "shape_estimator": _check_shape_estimator,
 }

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import torch
 from conftest import SKILLS
@@ -12,7 +14,7 @@ from torch import Tensor
 from vistac.pluginmanager import Plugins
 from vistac.plugins.filters.state import Prediction
 from vistac.testing import build_components, check_component, check_component_class
-from vistac.types import ArmState
+from vistac.types import ArmState, PointCloud, ShapeEstimate
 
 SIM = {
     "world": {"plugin": "sim.mujoco", "with": {"object": str(SKILLS / "objects/rect1.yaml")}},
@@ -116,3 +118,38 @@ def test_process_model_check_catches_a_broken_model(
     ctx = build_components({"model": PROCESS_MODELS["analytical"]}, tmp_path, plugins=plugins)
     with pytest.raises(AssertionError, match=message):
         check_component(_Broken(ctx.component("model"), flaw))
+
+
+@pytest.mark.parametrize("max_links", [1, 2])
+def test_shipped_shape_estimator_conforms(max_links: int, plugins: Plugins, tmp_path: Path) -> None:
+    components = {"shape": {"plugin": "shape.ems", "with": {"max_links": max_links}}}
+    check_component(build_components(components, tmp_path, plugins=plugins).component("shape"))
+
+
+class _OffsetEstimator:
+    """shape.ems with its estimate moved or malformed: the shape-estimator check must notice."""
+
+    kind = "shape_estimator"
+
+    def __init__(self, estimator: Any, flaw: str) -> None:
+        self.estimator, self.flaw = estimator, flaw
+
+    def fit(self, cloud: PointCloud) -> ShapeEstimate:
+        estimate = self.estimator.fit(cloud)
+        poses = np.array(estimate.initial_poses, dtype=np.float64)
+        if self.flaw == "moved":
+            poses[:, 0] += 0.03
+        elif self.flaw == "poses shape":
+            poses = poses[:, :2]
+        return replace(estimate, initial_poses=poses)
+
+
+@pytest.mark.parametrize(
+    ("flaw", "message"), [("moved", "from the box's"), ("poses shape", "initial_poses")]
+)
+def test_shape_estimator_check_catches_a_wrong_fit(
+    flaw: str, message: str, plugins: Plugins, tmp_path: Path
+) -> None:
+    ctx = build_components({"shape": {"plugin": "shape.ems"}}, tmp_path, plugins=plugins)
+    with pytest.raises(AssertionError, match=message):
+        check_component(_OffsetEstimator(ctx.component("shape"), flaw))
