@@ -68,6 +68,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     return result.exit_code
 
 
+def cmd_replay(args: argparse.Namespace) -> int:
+    from vistac.replay import replay
+
+    summary = replay(args.run, args.out, _plugins(args), args.set, args.overwrite)
+    print(format_summary(summary, args.out))
+    return 0
+
+
 def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
     """A short human-readable account of a run."""
     lines = [
@@ -392,6 +400,17 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out")
     _add_skill_options(run)
     run.set_defaults(func=cmd_run)
+
+    replay = sub.add_parser(
+        "replay",
+        help="feed a recorded run's interactions through its filter again, offline (change "
+        "the filter or model with --set)",
+    )
+    replay.add_argument("run", type=Path, help="folder of an earlier `vistac run`")
+    replay.add_argument("--out", type=Path, required=True, help="output folder")
+    replay.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out")
+    _add_skill_options(replay)
+    replay.set_defaults(func=cmd_replay)
 
     validate = sub.add_parser("validate", help="check skill files without running them")
     validate.add_argument("files", type=Path, nargs="+")

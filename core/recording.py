@@ -3,7 +3,8 @@
 ::
 
     OUT/run.json               config, versions, seed, timings, status
-    OUT/views/NNNN.npz         each depth view taken by ``look`` (+ cloud.npz, the merged cloud)
+    OUT/views/NNNN.npz         each depth view taken by ``look`` (+ cloud.npz, the merged cloud,
+                               and object_cloud.npz, the object cloud a filter started from)
     OUT/episodes/NNNN/data.npz the observation stream of one interaction (arrays)
     OUT/episodes/NNNN/meta.json the action, outcome, units and ground truth when known
     OUT/summary.json           estimates, variances, ground truth and metrics
@@ -127,6 +128,12 @@ class RunRecorder:
         folder = self.out_dir / "views"
         folder.mkdir(exist_ok=True)
         np.savez_compressed(folder / "cloud.npz", points_m=cloud.points_m.astype(np.float32))
+
+    def save_object_cloud(self, cloud: PointCloud) -> None:
+        """The segmented object cloud a filter started from: views/object_cloud.npz."""
+        folder = self.out_dir / "views"
+        folder.mkdir(exist_ok=True)
+        np.savez_compressed(folder / "object_cloud.npz", points_m=cloud.points_m)
 
     def save_episode(self, episode: Episode, ground_truth: dict[str, Any] | None) -> Path:
         """Write ``episodes/NNNN/`` atomically and remember its summary line."""

@@ -66,7 +66,7 @@ def _versions() -> dict[str, str]:
     return found
 
 
-def _run_info(skill: Skill, plugins: Plugins, seed: int) -> dict[str, Any]:
+def run_info(skill: Skill, plugins: Plugins, seed: int) -> dict[str, Any]:
     return {
         "skill": skill.name,
         "skill_path": str(skill.path),
@@ -97,7 +97,7 @@ class Scheduler:
         self.seed = skill.seed if seed is None else seed
         self.recorder = RunRecorder(out_dir)
         self.ctx = RunContext(skill, plugins, self.recorder, self.seed)
-        self.run_info = _run_info(skill, plugins, self.seed)
+        self.run_info = run_info(skill, plugins, self.seed)
         self.ticks = 0
 
     def run(self) -> RunResult:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -342,6 +342,19 @@ def action_to_dict(action: Action) -> dict[str, object]:
     if isinstance(action, Pull):
         result["grasp_axis_rad"] = float(action.grasp_axis_rad)
     return result
+
+
+def action_from_dict(fields: dict[str, Any]) -> Action:
+    """The action ``action_to_dict`` wrote (an episode's meta.json)."""
+    point = np.asarray(fields["point_m"], dtype=np.float64)
+    pd_rad, speed_mps = float(fields["pd_rad"]), float(fields["speed_mps"])
+    duration_s, link = float(fields["duration_s"]), int(fields.get("link", 0))
+    if fields["kind"] == "pull":
+        grasp_axis_rad = float(fields["grasp_axis_rad"])
+        return Pull(point, pd_rad, speed_mps, grasp_axis_rad, duration_s, link)
+    if fields["kind"] == "push":
+        return Push(point, pd_rad, speed_mps, duration_s, link)
+    raise DataError(f"unknown action kind {fields['kind']!r}; expected 'push' or 'pull'")
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@ import logging
 
 from py_trees.common import Status
 from pydantic import Field
+from vistac.behaviours.look import shape_links
 from vistac.component import ComponentConfig
 from vistac.protocols import Scene
 from vistac.tree import SkillBehaviour
@@ -26,10 +27,14 @@ def record_belief(results: dict[str, object], belief: GaussianBelief) -> None:
 def initial_belief(behaviour: SkillBehaviour, scene: Scene, filter_role: str) -> GaussianBelief:
     """The filter's first belief about the scene's object: written to the blackboard, the
     summary's ``prior`` (what the run started from; ``vistac eval`` scores it) and the
-    belief hook."""
+    belief hook. The shape it started from goes to the summary's ``filter_start`` and its
+    cloud to ``views/object_cloud.npz``, for ``vistac replay``."""
     belief: GaussianBelief = behaviour.component(filter_role).initialise(scene)
     behaviour.write("belief", belief)
     behaviour.run.results["prior"] = belief.as_dict()
+    if scene.shape is not None:  # what ``vistac replay`` starts the filter from again
+        behaviour.run.results["filter_start"] = {"links": shape_links(scene.shape)}
+        behaviour.run.recorder.save_object_cloud(scene.shape.cloud)
     behaviour.run.hook.vistac_belief(run=behaviour.run.info, belief=belief)
     return belief
 

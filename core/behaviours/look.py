@@ -13,7 +13,7 @@ from pydantic import Field
 from vistac.component import ComponentConfig
 from vistac.errors import DataError
 from vistac.tree import SkillBehaviour
-from vistac.types import PointCloud, ShapeEstimate, Viewpoint
+from vistac.types import PointCloud, ShapeEstimate, Superquadric, Viewpoint
 
 log = logging.getLogger(__name__)
 
@@ -111,14 +111,34 @@ class Look(SkillBehaviour):
 def shape_summary(shape: ShapeEstimate, views: int, time_s: float) -> dict[str, Any]:
     """JSON-ready summary of a shape estimate: per link the superquadric's fields, the
     initial pose and the parameter std; the number of views and the time spent (s)."""
-    links = [
+    return {"links": shape_links(shape), "views": views, "time_s": time_s,
+            "points": len(shape.cloud)}  # fmt: skip
+
+
+def shape_links(shape: ShapeEstimate) -> list[dict[str, Any]]:
+    """Per link the superquadric's fields, the initial pose and the parameter std (JSON-ready;
+    ``shape_from_links`` reads them back)."""
+    return [
         {
             "superquadric": {
                 name: np.asarray(value).tolist() for name, value in asdict(link).items()
             },
-            "initial_pose": pose.tolist(),
-            "std": std.tolist(),
+            "initial_pose": np.asarray(pose).tolist(),
+            "std": np.asarray(std).tolist(),
         }
         for link, pose, std in zip(shape.links, shape.initial_poses, shape.uncertainty, strict=True)
     ]
-    return {"links": links, "views": views, "time_s": time_s, "points": len(shape.cloud)}
+
+
+def shape_from_links(links: list[dict[str, Any]], cloud: PointCloud) -> ShapeEstimate:
+    """The ShapeEstimate of ``shape_links`` output, fitted to ``cloud``."""
+    superquadrics = [
+        {key: np.asarray(value, dtype=np.float64) for key, value in link["superquadric"].items()}
+        for link in links
+    ]
+    return ShapeEstimate(
+        tuple(Superquadric(**fields) for fields in superquadrics),
+        np.array([link["initial_pose"] for link in links], dtype=np.float64),
+        np.array([link["std"] for link in links], dtype=np.float64),
+        cloud,
+    )

@@ -710,8 +710,10 @@ class DualFilterComponent(Component):
         return inputs
 
     def _observation(self, step: StepObservation, filter_: DualFilter) -> torch.Tensor:
+        """The observation vector of a step, its depth at float32 precision: what a run records
+        (episodes/*/data.npz), so that ``vistac replay`` sees what the run saw."""
         assert step.depth is not None
-        depth = torch.as_tensor(step.depth.depth_m, dtype=DTYPE)
+        depth = torch.as_tensor(np.asarray(step.depth.depth_m, dtype=np.float32), dtype=DTYPE)
         force = torch.as_tensor(step.tactile.force_n.sum(axis=0), dtype=DTYPE)
         return observation_vector(depth, force, self.background_m)
 

@@ -1,0 +1,144 @@
+"""``vistac replay``: a recorded run's belief updates again, offline, with the run's filter or
+another one; and the pieces it reads back (actions, shapes, episodes)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import SKILLS, run_vistac
+from vistac.behaviours.look import shape_from_links, shape_links
+from vistac.errors import DataError
+from vistac.protocols import Episode, StepObservation
+from vistac.recording import RunRecorder
+from vistac.replay import load_episode
+from vistac.testing import two_box_scene
+from vistac.types import (
+    RGBD,
+    ArmState,
+    CameraIntrinsics,
+    Pull,
+    Push,
+    TactileReading,
+    action_from_dict,
+    action_to_dict,
+)
+
+
+def test_actions_read_back_as_written() -> None:
+    for action in (
+        Push(np.array([0.1, 0.4]), 0.3, 0.02, 3.0, link=1),
+        Pull(np.array([-0.1, 0.5]), -1.2, 0.015, 0.4, 2.0),
+    ):
+        back = action_from_dict(json.loads(json.dumps(action_to_dict(action))))
+        assert type(back) is type(action) and action_to_dict(back) == action_to_dict(action)
+    with pytest.raises(DataError, match="unknown action kind 'poke'"):
+        action_from_dict({**action_to_dict(Push(np.zeros(2), 0.0, 0.02)), "kind": "poke"})
+
+
+def test_shapes_read_back_as_written() -> None:
+    shape = two_box_scene().shape
+    assert shape is not None
+    back = shape_from_links(json.loads(json.dumps(shape_links(shape))), shape.cloud)
+    np.testing.assert_array_equal(back.initial_poses, shape.initial_poses)
+    np.testing.assert_array_equal(back.uncertainty, shape.uncertainty)
+    for link, original in zip(back.links, shape.links, strict=True):
+        for name in ("scale_m", "exponents", "world_from_sq", "taper"):
+            np.testing.assert_array_equal(getattr(link, name), getattr(original, name))
+
+
+def test_episodes_read_back_as_recorded(tmp_path: Path) -> None:
+    intrinsics = CameraIntrinsics(8, 6, 7.0, 7.5, 4.0, 3.0)
+    rng = np.random.default_rng(2)
+    steps = [
+        StepObservation(
+            0.1 * t,
+            TactileReading(rng.normal(size=(2, 2)), 0.1 * t + 0.01),
+            ArmState(rng.normal(size=4), rng.normal(size=4), 0.1 * t),
+            RGBD(rng.uniform(0.4, 0.6, (6, 8)), intrinsics, np.eye(4), 0.1 * t),
+            rng.normal(size=(2, 3)),
+        )
+        for t in range(3)
+    ]
+    episode = Episode(4, Push(np.array([0.0, 0.4]), 0.5, 0.02, 2.0, link=1), steps)
+    back = load_episode(RunRecorder(tmp_path).save_episode(episode, None))
+    assert back.index == 4 and back.outcome == "ok"
+    assert action_to_dict(back.action) == action_to_dict(episode.action)
+    for got, want in zip(back.steps, steps, strict=True):
+        assert got.time_s == want.time_s and got.tactile.timestamp_s == want.tactile.timestamp_s
+        np.testing.assert_array_equal(got.tactile.force_n, want.tactile.force_n)
+        np.testing.assert_array_equal(got.arm.pose, want.arm.pose)
+        np.testing.assert_array_equal(got.arm.twist, want.arm.twist)
+        np.testing.assert_array_equal(got.ground_truth_poses, want.ground_truth_poses)
+        assert got.depth is not None and want.depth is not None
+        assert got.depth.intrinsics == intrinsics
+        np.testing.assert_allclose(got.depth.depth_m, want.depth.depth_m, rtol=1e-7)  # float32
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One push of rect2 with the analytical model and the dual filter, recorded."""
+    out = tmp_path_factory.mktemp("replay") / "run"
+    result = run_vistac(
+        "-q", "run", str(SKILLS / "explore_push.yaml"), "--out", str(out),
+        "--set", "tree.sequence.1.repeat.max=1",
+        "--set", "components.model={plugin: filters.analytical}",
+        "--set", "components.filter.with.sigma_points=40",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    return out
+
+
+def _belief(folder: Path) -> dict[str, dict[str, float]]:
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["status"] == "success"
+    belief: dict[str, dict[str, float]] = summary["belief"]
+    return belief
+
+
+def test_replay_reproduces_the_runs_belief(recorded: Path, tmp_path: Path) -> None:
+    """The run's own filter on the recorded stream ends exactly where the run ended (the
+    filter reads depth at the float32 precision runs record it at)."""
+    out = tmp_path / "again"
+    result = run_vistac("-q", "replay", str(recorded), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    online, offline = _belief(recorded), _belief(out)
+    assert online.keys() == offline.keys()
+    assert offline == online
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["filter_steps"]) == summary["episodes"][0]["steps"]
+    assert set(summary["errors"]) == {"m_0", "f_0", "com_x_0", "com_y_0"}
+    info = json.loads((out / "run.json").read_text())
+    assert info["replay_of"] == str(recorded) and info["status"] == "success"
+
+
+def test_replay_with_another_filter_setting(recorded: Path, tmp_path: Path) -> None:
+    """--set changes the replayed filter: the shipped GNN in place of the analytical model
+    moves the estimates elsewhere, from the same prior."""
+    out = tmp_path / "gnn"
+    result = run_vistac(
+        "-q", "replay", str(recorded), "--out", str(out), "--set",
+        "components.model={plugin: filters.gnn, with: {checkpoint: checkpoints/gnn_push.pt, "
+        "hidden: 32}}",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    info = json.loads((out / "run.json").read_text())
+    assert info["config"]["components"]["model"]["plugin"] == "filters.gnn"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["prior"] == json.loads((recorded / "summary.json").read_text())["prior"]
+    online, gnn = _belief(recorded), _belief(out)
+    assert max(abs(gnn[n]["mean"] - online[n]["mean"]) for n in ("m_0", "f_0", "com_x_0")) > 1e-3
+
+
+def test_replay_refuses_a_folder_it_cannot_use(recorded: Path, tmp_path: Path) -> None:
+    missing = run_vistac("replay", str(tmp_path / "nothing"), "--out", str(tmp_path / "o"))
+    assert missing.returncode == 2 and "run.json: not found" in missing.stderr
+    old = tmp_path / "old"  # as recorded before runs kept the filter's start
+    shutil.copytree(recorded, old)
+    (old / "views/object_cloud.npz").unlink()
+    result = run_vistac("replay", str(old), "--out", str(tmp_path / "o"))
+    assert result.returncode == 2 and "no filter_start" in result.stderr
+    assert not (tmp_path / "o").exists()  # nothing half-done left behind
