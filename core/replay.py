@@ -29,7 +29,7 @@ from vistac.pluginmanager import Plugins
 from vistac.protocols import Episode, Scene, StepObservation
 from vistac.recording import RunRecorder, prepare_out_dir
 from vistac.run import RunContext
-from vistac.scheduler import belief_truth, run_info
+from vistac.scheduler import add_belief_errors, run_info
 from vistac.skill import apply_overrides, validate_skill
 from vistac.types import (
     RGBD,
@@ -109,14 +109,7 @@ def _summary(source: dict[str, Any], results: dict[str, Any], wall_s: float) -> 
         **results,
         "ground_truth": source.get("ground_truth"),
     }
-    truth, belief = summary["ground_truth"], summary.get("belief")
-    if belief and truth and "parameters" in truth:
-        summary["belief_truth"] = belief_truth(belief, truth)
-        summary["errors"] = {
-            name: abs(entry["mean"] - summary["belief_truth"][name])
-            for name, entry in belief.items()
-            if name in summary["belief_truth"]
-        }
+    add_belief_errors(summary)
     return summary
 
 

@@ -175,15 +175,21 @@ class Scheduler:
         world = self.ctx.world_if_built()
         truth = world.ground_truth() if world is not None else None
         summary["ground_truth"] = truth
-        belief = summary.get("belief")
-        if belief and truth and "parameters" in truth:
-            summary["belief_truth"] = belief_truth(belief, truth)
-            summary["errors"] = {
-                name: abs(entry["mean"] - summary["belief_truth"][name])
-                for name, entry in belief.items()
-                if name in summary["belief_truth"]
-            }
+        add_belief_errors(summary)
         return summary
+
+
+def add_belief_errors(summary: dict[str, Any]) -> None:
+    """``belief_truth`` and ``errors`` (|estimate - truth| per entry) of a summary whose
+    ``ground_truth`` has the parameters; nothing otherwise."""
+    belief, truth = summary.get("belief"), summary.get("ground_truth")
+    if belief and truth and "parameters" in truth:
+        summary["belief_truth"] = belief_truth(belief, truth)
+        summary["errors"] = {
+            name: abs(entry["mean"] - summary["belief_truth"][name])
+            for name, entry in belief.items()
+            if name in summary["belief_truth"]
+        }
 
 
 def belief_truth(belief: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
