@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from conftest import SKILLS, run_vistac
 from vistac.behaviours.look import shape_from_links, shape_links
 from vistac.errors import DataError
@@ -142,3 +143,22 @@ def test_replay_refuses_a_folder_it_cannot_use(recorded: Path, tmp_path: Path) -
     result = run_vistac("replay", str(old), "--out", str(tmp_path / "o"))
     assert result.returncode == 2 and "no filter_start" in result.stderr
     assert not (tmp_path / "o").exists()  # nothing half-done left behind
+
+
+def test_replay_of_a_real_robot_run_builds_no_hardware(recorded: Path, tmp_path: Path) -> None:
+    """A run of skills/real/explore_push.yaml replays on a machine without the robot: only
+    the filter and its model are built (a UR5 at 192.168.1.10 would be dialled otherwise).
+    The recorded stream is the simulated one, under the real skill's configuration."""
+    run = tmp_path / "real_run"
+    shutil.copytree(recorded, run)
+    info = json.loads((run / "run.json").read_text())
+    real = SKILLS / "real/explore_push.yaml"
+    info.update(skill_path=str(real), config=yaml.safe_load(real.read_text()))
+    (run / "run.json").write_text(json.dumps(info))
+    out = tmp_path / "replayed"
+    result = run_vistac("-q", "replay", str(run), "--out", str(out), timeout_s=120)
+    assert result.returncode == 0, result.stderr
+    replay = json.loads((out / "run.json").read_text())
+    assert replay["config"]["components"]["arm"]["plugin"] == "ur_rtde.arm"
+    prior = json.loads((out / "summary.json").read_text())["prior"]
+    assert _belief(out)["m_0"]["std"] < prior["m_0"]["std"]  # the pushes informed it
