@@ -53,6 +53,8 @@ def replay(
 ) -> dict[str, Any]:
     """Replay ``run_dir``'s belief updates into ``out_dir``; returns the new summary."""
     source, summary = _read_json(run_dir, "run.json"), _read_json(run_dir, "summary.json")
+    if not isinstance(source.get("config"), dict) or "skill_path" not in source:
+        raise _bad_run(f"{run_dir / 'run.json'}: no skill config or skill_path in it")
     data = apply_overrides(source["config"], list(overrides or []))
     skill = validate_skill(data, Path(source["skill_path"]), plugins.registry)
     roles = [role for role, c in skill.components.items() if c.kind == "filter"]

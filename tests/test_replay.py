@@ -143,6 +143,9 @@ def test_replay_refuses_a_folder_it_cannot_use(recorded: Path, tmp_path: Path) -
     result = run_vistac("replay", str(old), "--out", str(tmp_path / "o"))
     assert result.returncode == 2 and "no filter_start" in result.stderr
     assert not (tmp_path / "o").exists()  # nothing half-done left behind
+    (old / "run.json").write_text("{}")
+    bare = run_vistac("replay", str(old), "--out", str(tmp_path / "o"))
+    assert bare.returncode == 2 and "no skill config" in bare.stderr
 
 
 def test_replay_of_a_real_robot_run_builds_no_hardware(recorded: Path, tmp_path: Path) -> None:
