@@ -314,7 +314,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         checkpoints=args.checkpoints, models=parse_models(args.models),
         variants=parse_variants(args.variants),
         max_objects=args.max_objects, max_interactions=args.max_interactions, seed=args.seed,
-        overrides=tuple(args.set),
+        overrides=tuple(args.set), paired=args.paired,
     )  # fmt: skip
     if args.checkpoints is not None and not args.checkpoints.is_dir():
         raise ConfigError(f"--checkpoints: {args.checkpoints} is not a folder")
@@ -488,6 +488,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-interactions", type=int, default=None, help="cap on interactions per run"
     )
     evaluate.add_argument("--seed", type=int, default=None, help="override the skill's seed")
+    evaluate.add_argument(
+        "--paired", action="store_true",
+        help="variants with the first variant's action selector (a-ff, a-analytical after "
+        "a-gnn) filter its recorded interactions (vistac replay) instead of their own: the "
+        "models compared on the same pushes",
+    )  # fmt: skip
     evaluate.add_argument(
         "--trials", type=int, default=10,
         help="touch and goal-push skills: trials per object (seeds SEED .. SEED + N - 1)",

@@ -531,3 +531,36 @@ def test_a_run_without_its_episode_data_is_a_clear_error(tmp_path: Path) -> None
     with pytest.raises(DataError, match=r"0000/data.npz: no object_pose .*delete .* to run it"):
         first_poses(tmp_path, summary)
     assert first_poses(tmp_path, {"filter_steps": []}) is None  # no steps: nothing to score
+
+
+def test_paired_eval_filters_the_first_variants_interactions(tmp_path: Path) -> None:
+    """--paired: A-Analytical filters A-GNN's recorded pushes (vistac replay) instead of
+    choosing its own, so both columns score the same interactions; R-GNN, another selector,
+    still runs its own. A second call reuses the replay."""
+    out = tmp_path / "eval"
+    args = [
+        "-q", "eval", str(ROOT / "skills/explore_push.yaml"), "--out", str(out),
+        "--objects", str(ROOT / "skills/objects/rect2.yaml"), "--paired",
+        "--variants", "a-gnn,r-gnn,a-analytical", "--max-interactions", "1", *FAST,
+    ]  # fmt: skip
+    assert main(args) == 0
+    runs = out / "runs/rect2"
+    lead = json.loads((runs / "a-gnn/summary.json").read_text())
+    paired_info = json.loads((runs / "a-analytical/run.json").read_text())
+    assert paired_info["replay_of"] == str(runs / "a-gnn")
+    assert paired_info["config"]["components"]["model"]["plugin"] == "filters.analytical"
+    assert not (runs / "a-analytical/episodes").exists()  # the pushes are A-GNN's
+    paired = json.loads((runs / "a-analytical/summary.json").read_text())
+    assert paired["episodes"] == lead["episodes"] and paired["prior"] == lead["prior"]
+    assert paired["belief"] != lead["belief"]
+    own = json.loads((runs / "r-gnn/run.json").read_text())
+    assert "replay_of" not in own and (runs / "r-gnn/episodes").is_dir()
+    report = json.loads((out / "eval.json").read_text(encoding="utf-8"))
+    records = {r["variant"]: r for r in report["runs"]}
+    assert records["A-Analytical"]["replay_of"] == str(runs / "a-gnn")
+    assert records["A-Analytical"]["interactions"] == records["A-GNN"]["interactions"] == 1
+    tracking = report["tracking"]["homogeneous"]["A-Analytical"]
+    assert math.isfinite(tracking["position_m"])  # scored against A-GNN's recorded truth
+    stamp = (runs / "a-analytical/eval_args.json").stat().st_mtime_ns
+    assert main(args) == 0
+    assert (runs / "a-analytical/eval_args.json").stat().st_mtime_ns == stamp

@@ -42,7 +42,7 @@ from typing import Any, cast
 import numpy as np
 import yaml
 from pydantic import ValidationError
-from vistac.errors import ConfigError, DataError
+from vistac.errors import ConfigError, DataError, VistacError
 from vistac.objects import (
     FRICTION_RANGE,
     JOINT_FRICTION_RANGE_NM,
@@ -423,6 +423,9 @@ class EvalOptions:
     max_interactions: int | None = None
     seed: int | None = None
     overrides: tuple[str, ...] = ()
+    paired: bool = False
+    """Variants with the first variant's action selector filter its recorded interactions
+    (``vistac replay``) instead of choosing their own."""
 
 
 @dataclass
@@ -434,6 +437,8 @@ class RunPlan:
     variant: Variant
     overrides: list[str] = field(default_factory=list)
     skipped: str | None = None
+    lead: RunPlan | None = None
+    """With ``paired``: the run whose interactions this one replays."""
 
     @property
     def model(self) -> str:
@@ -642,7 +647,19 @@ def plan_runs(options: EvalOptions, objects: Sequence[Path], kind: str) -> list[
                 if not variant.estimate_parameters:
                     plan.overrides.append("components.filter.with.estimate_parameters=false")
             plans.append(plan)
+    if options.paired:
+        _pair(plans)
     return plans
+
+
+def _pair(plans: Sequence[RunPlan]) -> None:
+    """Per object, let every plan with the first variant's selector replay that variant's
+    run (``lead``); the others keep their own runs."""
+    leads: dict[Path, RunPlan] = {}
+    for plan in plans:
+        lead = leads.setdefault(plan.object_path, plan)
+        if lead is not plan and plan.variant.selector == lead.variant.selector:
+            plan.lead = lead
 
 
 # ---------------------------------------------------------------------------------------------
@@ -684,9 +701,47 @@ def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
     return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0}
 
 
+def replay_run(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
+    """Replay ``plan.lead``'s run with ``plan``'s overrides (reusing a finished replay)."""
+    from vistac.pluginmanager import load_plugins
+    from vistac.replay import replay
+
+    assert plan.lead is not None
+    source, run_dir = run_dir_of(options.out, plan.lead), run_dir_of(options.out, plan)
+    args = ["replay", str(source), *plan.overrides]
+    stamp = run_dir / "eval_args.json"
+    done = (run_dir / "summary.json").is_file() and stamp.is_file()
+    if done and json.loads(stamp.read_text(encoding="utf-8")) == args:
+        log.info("reusing %s", run_dir)
+        return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0, "replay_of": str(source)}
+    if not (source / "eval_args.json").is_file():  # written once a run has succeeded
+        return {"status": "failed", "run_dir": str(run_dir), "exit_code": 1,
+                "reason": f"nothing to replay: {plan.lead.variant.label}'s run failed"}  # fmt: skip
+    log.info("replaying %s's run on %s with %s", plan.lead.variant.label, plan.spec.name,
+             plan.variant.label)  # fmt: skip
+    try:
+        replay(source, run_dir, load_plugins(), list(plan.overrides), overwrite=True)
+    except VistacError as error:
+        return {"status": "failed", "run_dir": str(run_dir), "exit_code": error.exit_code,
+                "reason": f"replay failed: {error}"}  # fmt: skip
+    stamp.write_text(json.dumps(args), encoding="utf-8")
+    return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0, "replay_of": str(source)}
+
+
+def recorded_dir(run_dir: Path) -> Path:
+    """The folder whose ``episodes/`` hold ``run_dir``'s interactions: itself, or for a
+    ``vistac replay`` folder the run it replayed."""
+    if (run_dir / "episodes").is_dir():
+        return run_dir
+    info = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))
+    return Path(info.get("replay_of") or run_dir)
+
+
 def score_run(run_dir: Path) -> dict[str, Any]:
-    """Parameter pairs (final and after each interaction) and tracking errors of one run."""
+    """Parameter pairs (final and after each interaction) and tracking errors of one run (or
+    replay: its interactions are the replayed run's)."""
     summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+    run_dir = recorded_dir(run_dir)
     poses = first_poses(run_dir, summary)
     links = run_links(summary, poses)
     truth = truth_in_belief_frames(summary["ground_truth"]["parameters"], links, poses)
@@ -714,7 +769,10 @@ def run_record(plan: RunPlan, options: EvalOptions, kind: str) -> dict[str, Any]
     if plan.skipped:
         log.info("skipping %s on %s: %s", plan.variant.label, plan.spec.name, plan.skipped)
         return record | {"status": "skipped", "reason": plan.skipped}
-    record |= execute(plan, options)
+    if plan.lead is not None and plan.lead.skipped:
+        return record | {"status": "skipped", "reason": f"paired with {plan.lead.variant.label},"
+                         f" which was skipped: {plan.lead.skipped}"}  # fmt: skip
+    record |= execute(plan, options) if plan.lead is None else replay_run(plan, options)
     if record["status"] == "ok":
         record |= score_run(Path(record["run_dir"]))
     return record
