@@ -3,7 +3,7 @@
 Usage: python benchmarks/run_all.py [--out BENCHMARKS.md] [--repeats N]
                                    [--train-report DIR/train.json ...]
 
-Without --train-report, the training section of the existing output file is kept.
+The existing output file's notes are kept, and without --train-report its training section.
 """
 
 from __future__ import annotations
@@ -36,13 +36,19 @@ MODULES = (
 
 
 def machine() -> str:
-    cpu = "unknown CPU"
+    """The CPU in words: its name, family and model (CPUs of one name differ by generation)
+    and whether it has AVX-512 (torch's kernels use it), the core count, Python and OS."""
+    fields: dict[str, str] = {}
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.exists():
         for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
+            key, _, value = line.partition(":")
+            fields.setdefault(key.strip(), value.strip())
+    cpu = fields.get("model name", "unknown CPU")
+    if "cpu family" in fields:
+        avx512 = "avx512f" in fields.get("flags", "").split()
+        cpu += (f" (family {fields['cpu family']}, model {fields.get('model', '?')}, "
+                f"{'with' if avx512 else 'no'} AVX-512)")  # fmt: skip
     return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()}"
 
 
@@ -66,13 +72,22 @@ def render(rows: list[Row], repeats: int) -> str:
     return "\n".join(lines) + "\n"
 
 
-def kept_training(out: Path) -> str:
-    """The training section of an earlier ``out`` (from its heading on), or ''.
+NOTES_HEADING = "## Notes"
 
-    Without ``--train-report``, a rerun keeps the training rows it cannot measure itself."""
+
+def kept_sections(out: Path) -> tuple[str, str]:
+    """The notes and the training section of an earlier ``out`` (each from its heading on),
+    '' for a section it lacks.
+
+    A rerun keeps the notes (written by hand: the machines, the changes measured back to
+    back) and, without ``--train-report``, the training rows it cannot measure itself."""
     text = out.read_text(encoding="utf-8") if out.is_file() else ""
-    start = text.find(f"\n{TRAINING_HEADING}")
-    return text[start:] if start >= 0 else ""
+    training_at = text.find(f"\n{TRAINING_HEADING}")
+    training = text[training_at:] if training_at >= 0 else ""
+    notes_at = text.find(f"\n{NOTES_HEADING}\n")
+    end = training_at if training_at > notes_at else len(text)
+    notes = text[notes_at:end] if notes_at >= 0 else ""
+    return notes, training
 
 
 def main() -> int:
@@ -94,8 +109,8 @@ def main() -> int:
     for name in MODULES:
         print(f"running {name} ...", flush=True)
         rows += importlib.import_module(name).run(args.repeats)
-    training = render_training(args.train_report) or kept_training(args.out)
-    text = render(rows, args.repeats) + training
+    notes, training = kept_sections(args.out)
+    text = render(rows, args.repeats) + notes + (render_training(args.train_report) or training)
     args.out.write_text(text)
     print(text)
     return 0

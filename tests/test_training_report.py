@@ -57,13 +57,16 @@ def test_a_missing_report_is_a_clear_error_before_any_benchmark(tmp_path: Path) 
     assert not (tmp_path / "B.md").exists()
 
 
-def test_a_rerun_without_reports_keeps_the_earlier_training_section(tmp_path: Path) -> None:
-    from run_all import kept_training
+def test_a_rerun_keeps_the_notes_and_the_earlier_training_section(tmp_path: Path) -> None:
+    from run_all import kept_sections
 
     out = tmp_path / "B.md"
-    assert kept_training(out) == ""
+    assert kept_sections(out) == ("", "")
     section = render([_report(tmp_path)])
+    notes = "\n## Notes\n\nThe machine was busy.\n"
+    out.write_text("# Benchmarks\n\n| old rows |\n" + notes + section, encoding="utf-8")
+    assert kept_sections(out) == (notes, section)
     out.write_text("# Benchmarks\n\n| old rows |\n" + section, encoding="utf-8")
-    assert kept_training(out) == section
-    out.write_text("# Benchmarks\n\n| no training |\n", encoding="utf-8")
-    assert kept_training(out) == ""
+    assert kept_sections(out) == ("", section)
+    out.write_text("# Benchmarks\n\n| no training |\n" + notes, encoding="utf-8")
+    assert kept_sections(out) == (notes, "")
