@@ -70,10 +70,11 @@ def test_analytical_filter_tracks_recorded_pushes(tmp_path: Path) -> None:
         assert abs(float(error[2])) < 0.15, f"{push.source}: angle error {error}"
         # A consistent filter has a mean NEES of about 3 here; the pixels' noise is not
         # independent, so the visual update is overconfident (measured 3-89 per push with the
-        # skill's settings and the cropped images; 56-560 with a bare DualFilter, whose pose
+        # skill's settings and the cropped images, 101 for one push on another CPU, whose
+        # last bits give other recorded pushes; 56-560 with a bare DualFilter, whose pose
         # std has no floor). The bound catches a collapsed covariance (NEES in the
         # thousands), not that known excess.
-        assert np.mean(nees) < 100.0, f"{push.source}: overconfident, mean NEES {np.mean(nees)}"
+        assert np.mean(nees) < 200.0, f"{push.source}: overconfident, mean NEES {np.mean(nees)}"
     assert belief is not None
     mass, friction = float(belief.mean[6]), float(belief.mean[7])
     assert mass > 0 and friction > 0
