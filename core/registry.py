@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import difflib
 import importlib
 import logging
 from dataclasses import dataclass
 
 from pydantic import BaseModel
-from vistac.errors import PluginError
+from vistac.errors import PluginError, suggest
 from vistac.protocols import KINDS
 
 log = logging.getLogger(__name__)
@@ -22,14 +21,6 @@ class ComponentInfo:
     name: str
     target: str
     plugin: str
-
-
-def suggest(name: str, choices: list[str]) -> str:
-    """A ``did you mean`` clause for ``name`` among ``choices`` ('' when nothing is close)."""
-    close = difflib.get_close_matches(name, choices, n=3, cutoff=0.6)
-    if not close:
-        return ""
-    return " (did you mean " + " or ".join(repr(c) for c in close) + "?)"
 
 
 def import_target(target: str) -> type:

@@ -15,7 +15,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from vistac.component import ComponentSpec
-from vistac.errors import ConfigError, ConfigIssue, PluginError
+from vistac.errors import ConfigError, ConfigIssue, PluginError, validation_issues
 from vistac.registry import Registry
 from vistac.tree import TreeSpec, check_tree, parse_tree
 
@@ -127,22 +127,6 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
     return data
 
 
-def _loc(prefix: str, loc: tuple[int | str, ...]) -> str:
-    """Join a pydantic location onto a YAML path: ``a.b[0].c``."""
-    text = prefix
-    for item in loc:
-        if isinstance(item, int):
-            text += f"[{item}]"
-        else:
-            text = f"{text}.{item}" if text else str(item)
-    return text
-
-
-def pydantic_issues(prefix: str, error: ValidationError) -> list[ConfigIssue]:
-    """Convert a pydantic error into issues located by YAML path."""
-    return [ConfigIssue(_loc(prefix, tuple(e["loc"])), e["msg"]) for e in error.errors()]
-
-
 def validate_config(
     cls: type, data: dict[str, Any], path: str, context: dict[str, Any]
 ) -> tuple[BaseModel | None, list[ConfigIssue]]:
@@ -151,7 +135,7 @@ def validate_config(
     try:
         return config_cls.model_validate(data, context=context), []
     except ValidationError as exc:
-        return None, pydantic_issues(path, exc)
+        return None, validation_issues(path, exc, config_cls)
 
 
 def _resolve_component(
@@ -198,7 +182,7 @@ def validate_skill(data: dict[str, Any], path: Path, registry: Registry) -> Skil
     try:
         skill_file = SkillFile.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(pydantic_issues("", exc), str(path)) from None
+        raise ConfigError(validation_issues("", exc, SkillFile), str(path)) from None
     context = {"skill_dir": path.parent.resolve()}
     issues: list[ConfigIssue] = []
     components: dict[str, ResolvedComponent] = {}

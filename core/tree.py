@@ -21,7 +21,7 @@ import py_trees
 from py_trees.common import Access, Status
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from vistac.component import ComponentConfig
-from vistac.errors import ConfigIssue, PluginError
+from vistac.errors import ConfigIssue, PluginError, validation_issues
 from vistac.registry import Registry, suggest
 
 if TYPE_CHECKING:
@@ -161,9 +161,7 @@ def _parse_repeat(
     try:
         args = RepeatArgs.model_validate(value)
     except ValidationError as exc:
-        return None, [
-            ConfigIssue(f"{path}.{'.'.join(map(str, e['loc']))}", e["msg"]) for e in exc.errors()
-        ]
+        return None, validation_issues(path, exc, RepeatArgs)
     body = args.do if isinstance(args.do, list) else [args.do]
     node, issues = _parse_children("repeat", body, registry, context, f"{path}.do")
     if node is None:
@@ -192,10 +190,7 @@ def _parse_behaviour(
     try:
         config = cls.Config.model_validate(value or {}, context=context)
     except ValidationError as exc:
-        return None, [
-            ConfigIssue(f"{node_path}.{'.'.join(map(str, e['loc']))}", e["msg"])
-            for e in exc.errors()
-        ]
+        return None, validation_issues(node_path, exc, cls.Config)
     return NodeSpec(name, node_path, cls=cls, config=config), []
 
 

@@ -46,6 +46,16 @@ def test_two_mistakes_are_both_reported_with_paths_and_exit_2(tmp_path: Path, cl
         ("- just\n- a list\n", "a skill file must be a YAML mapping"),
         ("version: 2\nname: x\ntree: stop\n", "version: Input should be 1"),
         ("version: 1\nname: x\ntree: stop\nextra: 1\n", "extra: Extra inputs are not permitted"),
+        (
+            "version: 1\nname: x\ncomponents:\n"
+            "  shape: {plugin: shape.ems, with: {shear_gain: 1}}\ntree: stop\n",
+            "components.shape.with.shear_gain: Extra inputs are not permitted (did you mean "
+            "'shear_gain_nats' or 'shear'?)",
+        ),
+        (
+            "version: 1\nname: x\ncomponents: {}\ntree: {repeat: {do: stop, maxx: 2}}\n",
+            "tree.repeat.maxx: Extra inputs are not permitted (did you mean 'max' or 'on_max'?)",
+        ),
     ],
 )
 def test_one_clear_line_per_problem(tmp_path: Path, cli: Cli, text: str, expected: str) -> None:
