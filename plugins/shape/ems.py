@@ -1059,13 +1059,15 @@ def without_needless_shear(
         [sets[0][k] for k in sheared], plain, [sets[1][k] for k in sheared],
         [None] * len(sheared), points_m,
     )  # fmt: skip
+    nll = _surface_nll(points_m, links, options)
     for k, refit in zip(sheared, refits, strict=True):
         candidate = [*links[:k], refit, *links[k + 1 :]]
-        loss = _surface_nll(points_m, candidate, options) - _surface_nll(points_m, links, options)
-        if loss <= options.shear_gain_nats * len(points_m):
+        candidate_nll = _surface_nll(points_m, candidate, options)
+        loss_per_point = (candidate_nll - nll) / len(points_m)
+        if loss_per_point <= options.shear_gain_nats:
             logger.debug("EMS: link %d's shear %.3f dropped (%.4f nats a point)",
-                         k, links[k].params[_SHEAR], loss / len(points_m))  # fmt: skip
-            links = candidate
+                         k, links[k].params[_SHEAR], loss_per_point)  # fmt: skip
+            links, nll = candidate, candidate_nll
     return links
 
 
