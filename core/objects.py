@@ -24,7 +24,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
-from vistac.errors import ConfigError, ConfigIssue
+from vistac.errors import ConfigError, ConfigIssue, validation_issues
 
 FloatArray = NDArray[np.float64]
 
@@ -400,13 +400,6 @@ def link_surface_points(
 # Loading
 
 
-def _issues(error: ValidationError) -> list[ConfigIssue]:
-    return [
-        ConfigIssue(".".join(str(part) for part in item["loc"]), item["msg"])
-        for item in error.errors()
-    ]
-
-
 def object_from_dict(data: Any, source: str = "") -> ObjectSpec:
     """Validate a mapping as an :class:`ObjectSpec`; errors name the YAML path of each issue."""
     if not isinstance(data, dict):
@@ -414,7 +407,7 @@ def object_from_dict(data: Any, source: str = "") -> ObjectSpec:
     try:
         return ObjectSpec.model_validate(data)
     except ValidationError as error:
-        raise ConfigError(_issues(error), source) from None
+        raise ConfigError(validation_issues("", error, ObjectSpec), source) from None
 
 
 def load_object(path: str | Path) -> ObjectSpec:

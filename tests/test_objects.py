@@ -93,7 +93,7 @@ def test_com_outside_footprint_is_rejected_with_its_path() -> None:
     spec["pose"] = [0, 0.45, 0]
     with pytest.raises(ConfigError) as error:
         _validate(spec)
-    assert "links.0" in str(error.value)
+    assert "links[0]" in str(error.value)
     assert "outside footprint 'rect1'" in str(error.value)
 
 
@@ -111,8 +111,18 @@ def test_load_errors_name_file_and_yaml_path(tmp_path: Path) -> None:
         load_object(path)
     message = str(error.value)
     assert str(path) in message
-    assert "links.0.mass_kg" in message
+    assert "links[0].mass_kg" in message
     assert "less than or equal to 1.6" in message
+
+
+def test_misspelt_key_names_the_known_one() -> None:
+    spec: dict[str, Any] = {"name": "x", "type": "homogeneous", "pose": [0, 0.45, 0]}
+    spec["links"] = [_link(mass=0.5)]
+    with pytest.raises(ConfigError) as error:
+        _validate(spec)
+    assert "links[0].mass: Extra inputs are not permitted (did you mean 'mass_kg'?)" in str(
+        error.value
+    )
 
 
 def test_load_rejects_unknown_footprint_and_bad_yaml(tmp_path: Path) -> None:
@@ -121,7 +131,7 @@ def test_load_rejects_unknown_footprint_and_bad_yaml(tmp_path: Path) -> None:
         "name: x\ntype: homogeneous\npose: [0, 0.45, 0]\nlinks:\n"
         "  - {footprint: circle, height_m: 0.05, mass_kg: 1.0, friction: 0.3}\n",
     )
-    with pytest.raises(ConfigError, match=r"links\.0\.footprint"):
+    with pytest.raises(ConfigError, match=r"links\[0\]\.footprint"):
         load_object(bad_footprint)
     with pytest.raises(ConfigError, match="invalid YAML"):
         load_object(_write(tmp_path, "name: [unclosed\n"))
