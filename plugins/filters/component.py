@@ -34,6 +34,7 @@ from vistac.plugins.filters.observation import (
     ProjectionObservationModel,
     observation_vector,
 )
+from vistac.plugins.filters.rollout import PushEvidence, end_poses, push_update
 from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
 from vistac.protocols import Episode, Scene, StepObservation
 from vistac.types import Action, FloatArray, GaussianBelief, Pull, ShapeEstimate, action_point
@@ -353,6 +354,11 @@ class DualFilterComponent(Component):
         between_episodes_std_m: float = Field(
             0.002, ge=0, description="pose std added between interactions (m, and rad / 10)"
         )
+        push_evidence: PushEvidence = Field(
+            PushEvidence(), description="after each interaction, score the parameters by the "
+            "process model's open-loop rollout of the whole interaction against the tracked "
+            "end pose (vistac.plugins.filters.rollout)",
+        )
 
         def evidence_scale(self, measured_steps: float | None) -> float:
             """1 / the steps of an interaction that count as one independent observation:
@@ -462,12 +468,15 @@ class DualFilterComponent(Component):
         filter_ = self._filter(steps[0])
         inputs = self._inputs(episode)
         dt_s = float(np.median(np.diff([s.time_s for s in steps]))) if len(steps) > 1 else 1 / 15
+        start = None
         with torch.no_grad():
             for step in steps:
                 observation = self._observation(step, filter_)
                 self.belief = filter_.step(
                     self.belief, inputs(step), dt_s, observation, self.generator
                 )
+                if start is None:
+                    start = self.belief
                 if not self.config.estimate_parameters:
                     self._restore_prior_parameters()
                 visual, tactile = filter_.last_log_likelihood.tolist()
@@ -479,7 +488,25 @@ class DualFilterComponent(Component):
                         **self._public().as_dict(),
                     }
                 )
+            if self.config.push_evidence.enabled and self.config.estimate_parameters:
+                assert start is not None
+                self._push_update(start, [inputs(step) for step in steps[1:]], dt_s)
         return self._public()
+
+    def _push_update(self, start: Belief, inputs: list[ProcessInput], dt_s: float) -> None:
+        """The push-level evidence of one interaction (``push_evidence``)."""
+        assert self.belief is not None and self.layout is not None and self.shape is not None
+        layout, bound = self.layout, (self.config.max_link_speed_mps,
+                                      self.config.max_link_rate_radps)
+
+        def rollout(states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            return end_poses(self.model, layout, states, inputs, dt_s, bound)
+
+        _, sizes = link_boxes(self.shape)
+        self.belief = push_update(
+            self.belief, start, layout, self.config.push_evidence, rollout,
+            torch.as_tensor(sizes, dtype=DTYPE), self.generator,
+        )  # fmt: skip
 
     def predict_beliefs(
         self,
