@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from conftest import SKILLS, run_vistac
 from vistac.plugins.filters.dual import Belief
 from vistac.plugins.filters.rollout import (
     PushEvidence,
@@ -196,3 +197,17 @@ def test_a_belief_mostly_outside_the_footprint_is_left_as_it_is() -> None:
         torch.tensor([[0.06, 0.06]], dtype=DTYPE), torch.Generator().manual_seed(0),
     )  # fmt: skip
     assert kept is prior
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("components.filter.with.push_evidence.parameters=[comx]", "'comx' starts no parameter"),
+        ("components.filter.with.push_evidence.std_floor=[0.01, 0]", "greater than 0"),
+        ("components.filter.with.push_evidence.sample=10", "did you mean 'samples'"),
+    ],
+)
+def test_bad_settings_are_refused_with_their_path(override: str, message: str) -> None:
+    result = run_vistac("validate", str(SKILLS / "explore_push.yaml"), "--set", override)
+    assert result.returncode == 2
+    assert "components.filter.with.push_evidence" in result.stderr and message in result.stderr

@@ -18,7 +18,7 @@ import math
 from collections.abc import Callable, Sequence
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, field_validator
 from torch import Tensor
 from vistac.plugins.filters.dual import (
     Belief,
@@ -56,11 +56,20 @@ class PushEvidence(BaseModel):
     min_ess_fraction: float = Field(
         0.8, gt=0, le=1, description="temper the weights to keep this share of the samples"
     )
-    std_floor: tuple[float, float] = Field(
+    std_floor: tuple[PositiveFloat, PositiveFloat] = Field(
         (0.015, 0.25), description="least model error std of an end pose (m, rad): the "
         "shipped push GNN's rollouts at the true parameters end 10-13 mm and 0.26 rad (RMS) "
         "from the tracked pose on the validation objects, 2.5 times its summed process std",
     )
+
+    @field_validator("parameters")
+    @classmethod
+    def _known_entries(cls, prefixes: tuple[str, ...]) -> tuple[str, ...]:
+        names = ("m_", "f_", "com_x_", "com_y_", "f_j_")
+        for prefix in prefixes:
+            if not any(name.startswith(prefix) or prefix.startswith(name) for name in names):
+                raise ValueError(f"{prefix!r} starts no parameter's name ({', '.join(names)})")
+        return prefixes
 
 
 def scored_rows(layout: StateLayout, prefixes: Sequence[str]) -> list[int]:
@@ -73,7 +82,8 @@ def with_marginal(belief: Belief, rows: Sequence[int], mean: Tensor, cov: Tensor
     """The joint belief [n] with the marginal of ``rows`` replaced by N(mean [k], cov [k, k])
     and the rest moved by its regression on them (Jeffrey's rule for Gaussians)."""
     index = torch.as_tensor(rows)
-    rest = torch.as_tensor([i for i in range(belief.mean.shape[-1]) if i not in set(rows)])
+    scored = set(rows)
+    rest = torch.as_tensor([i for i in range(belief.mean.shape[-1]) if i not in scored])
     cov_kk = belief.cov[index][:, index]
     cov_rk = belief.cov[rest][:, index]
     regression = torch.cholesky_solve(cov_rk.T, cholesky_safe(cov_kk)).T  # [n - k, k]
