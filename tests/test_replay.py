@@ -136,22 +136,27 @@ def test_replay_with_another_filter_setting(recorded: Path, tmp_path: Path) -> N
 
 
 def test_replay_with_push_evidence(recorded: Path, tmp_path: Path) -> None:
-    """The push-level update runs after the push: the CoM it scores ends surer than the
-    step-by-step filter leaves it, and nearer the truth (rect2's CoM is its centre); the
-    pose stays where the filter tracked it."""
-    out = tmp_path / "push"
-    result = run_vistac(
-        "-q", "replay", str(recorded), "--out", str(out),
-        "--set", "components.filter.with.push_evidence.enabled=true",
-    )  # fmt: skip
-    assert result.returncode == 0, result.stderr
-    steps, push = _belief(recorded), _belief(out)
-    errors = json.loads((out / "summary.json").read_text())["errors"]
-    step_errors = json.loads((recorded / "summary.json").read_text())["errors"]
+    """The push-level update (on in explore_push.yaml) runs after the push: the CoM it scores
+    ends surer than the step-by-step filter alone leaves it, and nearer the truth (rect2's CoM
+    is its centre); the pose stays where the filter tracked it."""
+    folders = {}
+    for enabled in ("false", "true"):
+        folders[enabled] = tmp_path / enabled
+        result = run_vistac(
+            "-q", "replay", str(recorded), "--out", str(folders[enabled]),
+            "--set", f"components.filter.with.push_evidence.enabled={enabled}",
+        )  # fmt: skip
+        assert result.returncode == 0, result.stderr
+    steps, push = _belief(folders["false"]), _belief(folders["true"])
+    assert push == _belief(recorded)
+    errors = {
+        enabled: json.loads((folder / "summary.json").read_text())["errors"]
+        for enabled, folder in folders.items()
+    }
     for name in ("com_x_0", "com_y_0"):
         assert push[name]["std"] < steps[name]["std"]
-    assert math.hypot(errors["com_x_0"], errors["com_y_0"]) < math.hypot(
-        step_errors["com_x_0"], step_errors["com_y_0"]
+    assert math.hypot(errors["true"]["com_x_0"], errors["true"]["com_y_0"]) < math.hypot(
+        errors["false"]["com_x_0"], errors["false"]["com_y_0"]
     )
     for name in ("x_0", "y_0"):
         assert abs(push[name]["mean"] - steps[name]["mean"]) < 1e-3
