@@ -281,8 +281,10 @@ def test_eval_exits_1_when_a_run_fails(tmp_path: Path, capsys: pytest.CaptureFix
 def test_eval_names_a_bad_prior(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     skill = tmp_path / "explore.yaml"
     text = (ROOT / "skills/explore_push.yaml").read_text(encoding="utf-8")
-    skill.write_text(text.replace("{noise_checkpoint: checkpoints/obs_noise_push.pt}",
-                                  "{prior: {mass_kg: [0.9]}}"))  # fmt: skip
+    noise = "noise_checkpoint: checkpoints/obs_noise_push.pt,"
+    bad = text.replace(noise, "prior: {mass_kg: [0.9]},")
+    assert bad != text
+    skill.write_text(bad)
     code = main(["-q", "eval", str(skill), "--out", str(tmp_path / "eval"),
                  "--objects", str(ROOT / "skills/objects/rect2.yaml")])  # fmt: skip
     assert code == 2
