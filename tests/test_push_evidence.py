@@ -65,7 +65,7 @@ def _belief(com_std_m: float = 0.02) -> Belief:
 
 
 def _rollout(states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    return end_poses(TurnByCoM(), LAYOUT, states, _inputs(), DT_S, None)
+    return end_poses(TurnByCoM().predict, LAYOUT, states, _inputs(), DT_S, None)
 
 
 def test_rollout_ends_where_the_rates_take_it_and_sums_the_process_variance() -> None:

@@ -10,6 +10,7 @@ The belief is carried from one interaction to the next.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 from collections.abc import Sequence
@@ -27,6 +28,7 @@ from vistac.plugins.actions.affordances import link_outline
 from vistac.plugins.actions.executor import CartesianExecutor
 from vistac.plugins.filters.data import relative_poses
 from vistac.plugins.filters.dual import Belief, DualFilter, ObservationModel
+from vistac.plugins.filters.mirror import mirror_averaged
 from vistac.plugins.filters.models import load_checkpoint
 from vistac.plugins.filters.observation import (
     DepthProjector,
@@ -499,8 +501,12 @@ class DualFilterComponent(Component):
         layout, bound = self.layout, (self.config.max_link_speed_mps,
                                       self.config.max_link_rate_radps)
 
+        predict = self.model.predict
+        if self.config.push_evidence.mirror_average:
+            predict = functools.partial(mirror_averaged, predict)
+
         def rollout(states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            return end_poses(self.model, layout, states, inputs, dt_s, bound)
+            return end_poses(predict, layout, states, inputs, dt_s, bound)
 
         _, sizes = link_boxes(self.shape)
         self.belief = push_update(

@@ -23,7 +23,6 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, field_validato
 from torch import Tensor
 from vistac.plugins.filters.dual import (
     Belief,
-    ProcessModel,
     antithetic_noise,
     bound_twist,
     check_prediction,
@@ -33,6 +32,7 @@ from vistac.plugins.filters.dual import (
     temper_log_weights,
     weighted_moments,
 )
+from vistac.plugins.filters.mirror import Forward
 from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
 
 log = logging.getLogger(__name__)
@@ -52,6 +52,11 @@ class PushEvidence(BaseModel):
     )
     parameters: tuple[str, ...] = Field(
         ("com_",), description="state entries whose names start with one of these are scored"
+    )
+    mirror_average: bool = Field(
+        True, description="roll out the average of the model's prediction and its mirror "
+        "image about the push line (vistac.plugins.filters.mirror), which cancels the part "
+        "of a learned model's error that turns the object to one side",
     )
     samples: int = Field(64, ge=4, description="parameter samples rolled out")
     min_ess_fraction: float = Field(
@@ -101,14 +106,15 @@ def with_marginal(belief: Belief, rows: Sequence[int], mean: Tensor, cov: Tensor
 
 
 def end_poses(
-    model: ProcessModel,
+    predict: Forward,
     layout: StateLayout,
     states: Tensor,
     inputs: Sequence[ProcessInput],
     dt_s: float,
     twist_bound: tuple[float, float] | None,
 ) -> tuple[Tensor, Tensor]:
-    """Open-loop mean rollout of states [K, n] through ``inputs`` (one per step).
+    """Open-loop mean rollout of states [K, n] through ``inputs`` (one per step) by a process
+    model's ``predict``.
 
     Returns each rollout's end (x, y, theta) per link [K, L, 3] and the process variance of
     those entries summed along the rollout [K, L, 3].
@@ -116,7 +122,7 @@ def end_poses(
     params = states[:, layout.parameter_slice]
     var = states.new_zeros(states.shape[0], layout.n_pose)
     for step in inputs:
-        prediction = model.predict(states, step, dt_s)
+        prediction = predict(states, step, dt_s)
         check_prediction(prediction, layout)
         pose = prediction.pose
         if twist_bound is not None:
