@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import pytest
 import torch
 from conftest import SKILLS, run_vistac
 from vistac.plugins.filters.dual import Belief
+from vistac.plugins.filters.mirror import mirror_averaged
 from vistac.plugins.filters.rollout import (
     PushEvidence,
     end_poses,
@@ -28,15 +30,18 @@ PROCESS_VAR = (1e-6, 1e-6, 1e-4, 0.0, 0.0, 0.0)
 
 
 class TurnByCoM:
-    """A push that turns the link at ``TURN_PER_COM * com_y`` and slides it sideways at
-    ``SLIDE_PER_COM * com_x``: the end pose is linear in the CoM."""
+    """A push that turns the link at ``TURN_PER_COM * com_y + bias_radps`` and slides it
+    sideways at ``SLIDE_PER_COM * com_x``: the end pose is linear in the CoM."""
 
     n_links = 1
+
+    def __init__(self, bias_radps: float = 0.0) -> None:
+        self.bias_radps = bias_radps
 
     def predict(self, states: torch.Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
         del inputs
         params = LAYOUT.link_parameters(states)[..., 0, :]
-        rate = TURN_PER_COM * params[..., 3]
+        rate = TURN_PER_COM * params[..., 3] + self.bias_radps
         slide = SLIDE_PER_COM * params[..., 2]
         pose = states[..., :6].clone()
         pose[..., 1] += dt_s * slide
@@ -75,6 +80,20 @@ def test_rollout_ends_where_the_rates_take_it_and_sums_the_process_variance() ->
     assert ends.shape == (1, 1, 3) and var.shape == (1, 1, 3)
     assert float(ends[0, 0, 2]) == pytest.approx(STEPS * DT_S * TURN_PER_COM * 0.01)
     torch.testing.assert_close(var[0, 0], STEPS * torch.tensor(PROCESS_VAR[:3], dtype=DTYPE))
+
+
+def test_mirror_averaged_rollouts_cancel_a_one_sided_turn() -> None:
+    """A model that turns every push 0.3 rad/s to one side: the mirror-averaged rollout
+    (push_evidence.mirror_average) ends where the unbiased model does."""
+    state = _belief().mean.clone()
+    state[9] = 0.01
+    biased = TurnByCoM(bias_radps=0.3).predict
+    plain, _ = end_poses(biased, LAYOUT, state[None], _inputs(), DT_S, None)
+    averaged, _ = end_poses(functools.partial(mirror_averaged, biased), LAYOUT, state[None],
+                            _inputs(), DT_S, None)  # fmt: skip
+    unbiased = STEPS * DT_S * TURN_PER_COM * 0.01
+    assert float(plain[0, 0, 2]) == pytest.approx(unbiased + STEPS * DT_S * 0.3)
+    assert float(averaged[0, 0, 2]) == pytest.approx(unbiased)
 
 
 def test_scored_rows_name_the_parameters() -> None:
