@@ -953,3 +953,13 @@ def test_leaving_out_the_entries_no_point_varies_in_changes_nothing(
     torch.testing.assert_close(fewer.cov, every.cov, rtol=1e-7, atol=1e-14)
     torch.testing.assert_close(fewer_likelihood, every_likelihood, rtol=1e-9, atol=1e-9)
     assert not torch.equal(fewer.mean, belief.mean)
+
+
+def test_at_rest_zeroes_every_links_twist_and_nothing_else() -> None:
+    layout = StateLayout(2)
+    states = torch.arange(2 * layout.size, dtype=DTYPE).reshape(2, layout.size) + 1.0
+    rest = layout.at_rest(states)
+    twist = [layout.index(f"{name}_{link}") for link in (0, 1) for name in ("vx", "vy", "omega")]
+    assert bool((rest[:, twist] == 0).all())
+    others = [i for i in range(layout.size) if i not in twist]
+    assert torch.equal(rest[:, others], states[:, others])

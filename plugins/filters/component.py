@@ -583,9 +583,7 @@ class DualFilterComponent(Component):
             states = self.belief.mean.expand(len(actions), -1)
         if states.shape != (len(actions), layout.size):
             raise ValueError(f"states: expected [{len(actions)}, {layout.size}]")
-        at_rest = torch.ones(layout.size, dtype=DTYPE)
-        at_rest[layout.pose_slice] = torch.tensor([1.0, 1, 1, 0, 0, 0]).repeat(layout.n_links)
-        states = (states * at_rest).unsqueeze(-2)  # [B, 1, n]
+        states = layout.at_rest(states).unsqueeze(-2)  # [B, 1, n]
         poses = layout.link_pose(states[:, 0]).numpy()[:, :, :3]
         motion = self._action_motion(actions, poses, standoff=True)
         steps = [round(a.duration_s * rate_hz) for a in actions]
@@ -598,7 +596,7 @@ class DualFilterComponent(Component):
                 prediction = look_ahead.predict(states, motion.inputs(step * dt_s), dt_s)
                 moved = torch.cat([prediction.pose, params], -1)
                 states = torch.where(which, moved, states)
-            states = states[:, 0] * at_rest
+            states = layout.at_rest(states[:, 0])
         return states.clone()  # a normal tensor again
 
     def _action_motion(
@@ -683,11 +681,7 @@ class DualFilterComponent(Component):
         extra[self.layout.pose_slice] = torch.tensor([std_m, std_m, std_m * 10, 0, 0, 0]).repeat(
             self.layout.n_links
         )
-        twist = torch.zeros(self.layout.size, dtype=DTYPE)
-        twist[self.layout.pose_slice] = torch.tensor([0, 0, 0, 1.0, 1.0, 1.0]).repeat(
-            self.layout.n_links
-        )
-        mean = self.belief.mean * (1 - twist)  # the object is at rest again
+        mean = self.layout.at_rest(self.belief.mean)  # the object is at rest again
         self.belief = Belief(mean, self.belief.cov + torch.diag(extra**2))
 
     def _filter(self, first: StepObservation) -> DualFilter:

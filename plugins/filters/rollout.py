@@ -33,7 +33,12 @@ from vistac.plugins.filters.dual import (
     weighted_moments,
 )
 from vistac.plugins.filters.mirror import Forward
-from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
+from vistac.plugins.filters.state import (
+    DTYPE,
+    LINK_PARAMETER_FIELDS,
+    ProcessInput,
+    StateLayout,
+)
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +76,7 @@ class PushEvidence(BaseModel):
     @field_validator("parameters")
     @classmethod
     def _known_entries(cls, prefixes: tuple[str, ...]) -> tuple[str, ...]:
-        names = ("m_", "f_", "com_x_", "com_y_", "f_j_")
+        names = tuple(f"{field}_" for field in (*LINK_PARAMETER_FIELDS, "f_j"))
         for prefix in prefixes:
             if not any(name.startswith(prefix) or prefix.startswith(name) for name in names):
                 raise ValueError(f"{prefix!r} starts no parameter's name ({', '.join(names)})")
@@ -168,7 +173,7 @@ def push_update(
     white = antithetic_noise(white)
     samples = mean + white @ cholesky_safe(cov).T  # [K, k]
     states = belief.mean.expand(len(samples), -1).clone()
-    states[:, layout.pose_slice] = start.mean[layout.pose_slice] * _at_rest(layout)
+    states[:, layout.pose_slice] = layout.at_rest(start.mean)[layout.pose_slice]
     states[:, index] = samples
     allowed = feasible(states, layout, link_size_m)
     if 2 * int(allowed.sum()) < len(samples):
@@ -188,15 +193,12 @@ def push_update(
     tracked_var = pose_var.unflatten(-1, (layout.n_links, 6))[..., :3]
     log_likelihood = push_log_likelihood(ends, model_var, tracked, tracked_var)
     log_weights, beta = temper_log_weights(log_likelihood, settings.min_ess_fraction * len(samples))
-    log.debug(
-        "push evidence: model std %s, tracked std %s, end spread %s, beta %.3g",
-        model_var.mean(0).sqrt().flatten().tolist(), tracked_var.sqrt().flatten().tolist(),
-        ends.std(0).flatten().tolist(), float(beta),
-    )  # fmt: skip
+    if log.isEnabledFor(logging.DEBUG):
+        log.debug(
+            "push evidence: model std %s, tracked std %s, end spread %s, beta %.3g",
+            model_var.mean(0).sqrt().flatten().tolist(), tracked_var.sqrt().flatten().tolist(),
+            ends.std(0).flatten().tolist(), float(beta),
+        )  # fmt: skip
     new_mean, new_cov = weighted_moments(samples, log_weights.exp())
     return with_marginal(belief, rows, new_mean, new_cov)
 
-
-def _at_rest(layout: StateLayout) -> Tensor:
-    """[6 L] ones on the positions and angles, zeros on the twist."""
-    return torch.tensor([1.0, 1, 1, 0, 0, 0], dtype=DTYPE).repeat(layout.n_links)

@@ -74,6 +74,12 @@ class StateLayout:
         """[..., n] -> [..., L, 6] = (x, y, theta, vx, vy, omega) per link."""
         return states[..., self.pose_slice].reshape(*states.shape[:-1], self.n_links, 6)
 
+    def at_rest(self, states: Tensor) -> Tensor:
+        """[..., n] -> a copy with every link's twist (vx, vy, omega) zero."""
+        links = self.link_pose(states)
+        pose = torch.cat([links[..., :3], torch.zeros_like(links[..., 3:])], -1).flatten(-2)
+        return torch.cat([pose, states[..., self.parameter_slice]], -1)
+
     def link_parameters(self, states: Tensor) -> Tensor:
         """[..., n] -> [..., L, 4] = (m, f, com_x, com_y) per link."""
         start = self.n_pose
