@@ -25,11 +25,15 @@ PUSH_UP = Push(cp_m=np.array([0.0, 0.405]), pd_rad=math.pi / 2, speed_mps=0.02)
 
 
 def execute(
-    ctx: TestContext, action: Action, tcp_z_m: list[float] | None = None, **options: Any
+    ctx: TestContext,
+    action: Action,
+    tcp_z_m: list[float] | None = None,
+    poses: list[np.ndarray] | None = None,
+    **options: Any,
 ) -> np.ndarray:
     """Run ``action`` to the end with a CartesianExecutor of ``options``; returns the tactile
     forces [T, 2, 2] of the interaction (and appends the TCP height of each of its steps to
-    ``tcp_z_m``)."""
+    ``tcp_z_m``, the object's link poses [L, 3] to ``poses``)."""
     executor: CartesianExecutor = ctx.add(CartesianExecutor, **options)
     world: MujocoWorld = ctx.find("world")
     executor.start(action)
@@ -43,6 +47,8 @@ def execute(
             forces.append(ctx.find("tactile").read().force_n)
             if tcp_z_m is not None:
                 tcp_z_m.append(float(ctx.find("arm").state().pose[2]))
+            if poses is not None:
+                poses.append(world.link_poses().copy())
     raise AssertionError("the action did not finish")
 
 
@@ -63,6 +69,21 @@ def test_push_moves_box_along_pd_and_force_matches_coulomb(tmp_path: Path) -> No
     total = forces[-30:].sum(axis=1).mean(axis=0)
     assert total[1] == pytest.approx(-0.3 * 0.5 * 9.81, rel=0.15), "object pushes back on the pad"
     assert abs(total[0]) < 0.05
+
+
+@pytest.mark.parametrize(("back_off_m", "moves"), [(0.02, False), (0.0, True)])
+def test_the_pad_backs_off_before_it_rises_and_leaves_the_object_where_the_push_did(
+    tmp_path: Path, back_off_m: float, moves: bool
+) -> None:
+    """Between pushes nobody watches the object, so it must stay where the observed push
+    left it. A pad lifted while it still presses on a heavy box drags the box on (and can
+    tip a tall one over); backing off along -pd first leaves it within a millimetre."""
+    ctx = sim_setup(tmp_path, box_object(link={"mass_kg": 1.5, "friction": 0.45}))
+    poses: list[np.ndarray] = []
+    execute(ctx, PUSH_UP, poses=poses, back_off_m=back_off_m)
+    after = ctx.find("world").link_poses()[0] - poses[-1][0]
+    assert abs(after[2]) < 0.01
+    assert bool(np.hypot(*after[:2]) > 0.0025) is moves, f"moved {after[:2]} m after the push"
 
 
 ON_TOP = Push(cp_m=np.array([0.0, 0.47]), pd_rad=math.pi / 2, speed_mps=0.02)

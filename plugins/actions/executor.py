@@ -5,7 +5,9 @@ An action is a list of phases, each stepped once per control period:
 - push: ``lift`` to the approach height, ``close`` the fingers, ``approach`` above the
   pre-contact point (``standoff_m`` behind the contact point along -pd, the closing axis along
   pd so that the leading pad faces the push), ``descend`` to finger height, ``push`` along pd
-  at the action's speed for ``duration_s`` (the observed interaction), ``retreat`` upwards.
+  at the action's speed for ``duration_s`` (the observed interaction), ``back_off`` along -pd
+  by ``back_off_m`` at finger height (a pad still pressed on the object would drag its face
+  up as it rises and can tip it over), ``retreat`` upwards.
 - pull: ``lift``, ``open``, ``approach`` above the grasp point with the fingers closing along
   ``grasp_axis_rad``, ``descend``, ``grasp`` (close until the fingers stall), ``pull`` along pd
   for ``duration_s`` (observed), ``release`` and ``retreat``.
@@ -86,6 +88,10 @@ class CartesianExecutor(Component):
         """Gap between the pushing pad and the contact point before the push starts."""
         pusher_offset_m: float = Field(default=0.01, ge=0.0)
         """Distance from the TCP to the leading pad face with the fingers closed."""
+        back_off_m: float = Field(default=0.02, ge=0.0)
+        """After a push, how far the pad backs away from the object along -pd before it
+        rises: lifting a pad that still presses on the object drags the object's face up
+        (the pads grip), which turned tall objects over in the simulated world."""
         approach_height_m: float = Field(default=0.1, gt=0.0)
         finger_height_m: float = Field(default=0.02, gt=0.0)
         tolerance_m: float = Field(default=0.002, gt=0.0)
@@ -167,12 +173,14 @@ class CartesianExecutor(Component):
         direction = np.array([math.cos(push.pd_rad), math.sin(push.pd_rad)])
         back_m = self.config.standoff_m + self.config.pusher_offset_m
         pre_xy = push.cp_m - back_m * direction
+        back_off = self.config.back_off_m * direction
         return [
             self._move_phase("lift", lambda pose: (pose[0], pose[1], self._safe_z, pose[3])),
             self._gripper_phase("close", self.gripper.close),
             self._move_phase("approach", lambda pose: (*pre_xy, self._safe_z, push.pd_rad)),
             self._move_phase("descend", lambda pose: (*pre_xy, self._finger_z, pose[3])),
             self._interact_phase("push", direction, push.speed_mps, push.duration_s),
+            self._move_phase("back_off", lambda pose: (*(pose[:2] - back_off), *pose[2:])),
             *self._retreat_phases(),
         ]
 
