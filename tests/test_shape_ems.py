@@ -6,9 +6,17 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from conftest import ROOT
 from vistac.errors import DataError
 from vistac.objects import FOOTPRINTS, footprint_polygon, prism_surface_points, to_world_xy
-from vistac.plugins.shape.ems import PARAMETER_NAMES, EMSEstimator
+from vistac.plugins.shape.ems import (
+    PARAMETER_NAMES,
+    EMSEstimator,
+    EMSOptions,
+    EMSResult,
+    fit_links,
+    to_superquadric,
+)
 from vistac.plugins.shape.superquadric import (
     chamfer_distance_m,
     distance_to_surface_m,
@@ -266,6 +274,35 @@ def test_covariance_matches_the_standard_deviations() -> None:
     np.testing.assert_allclose(cov, cov.T)
     np.testing.assert_allclose(np.sqrt(np.diag(cov)), estimate.uncertainty[0], rtol=1e-9)
     assert np.linalg.eigvalsh(cov).min() > -1e-12
+
+
+DATA = ROOT / "tests/data"
+LAST_VIEW_LINKS = (
+    # PARAMETER_NAMES order, noise (m): a tapered link and a 2 mm sliver beside it.
+    ([0.032916, 0.070097, 0.024211, 0.140511, 0.1, 0.884607, 0.066013, -0.272594, 0.452642,
+      -2.393801, 0.024211, 0.0, 0.0, 0.402693], 0.001611),
+    ([0.002, 0.03875, 0.022776, 0.595321, 1.511181, 0.24632, 1.0, -0.2548, 0.484153, 0.74785,
+      0.022776, 0.0, 0.0, 0.000638], 0.002344),
+)
+
+
+def test_a_link_refitted_from_the_last_view_must_explain_points_to_be_kept() -> None:
+    """A view of a triangle, warm-started from the last view's links: the sliver, refitted,
+    explained none of the points, yet the pair was kept for the better fit of the other link,
+    and its undefined covariance (NaN) then ended the run. Every link kept explains at least
+    the outlier threshold's points, and every covariance is finite."""
+    points_m = np.loadtxt(DATA / "tri2_view_sliver_mm.txt") / 1000.0
+    options = EMSOptions()
+    nothing = np.zeros((0, 3))
+    last = [
+        EMSResult(to_superquadric(np.array(params)), np.array(params), np.zeros(0), noise_m,
+                  0.0, nothing, options, nothing, np.zeros(0))
+        for params, noise_m in LAST_VIEW_LINKS
+    ]  # fmt: skip
+    threshold = 33
+    links = fit_links(points_m, options, 2, threshold, 0.01, last)
+    assert min(int((link.inlier_probability >= 0.5).sum()) for link in links) >= threshold
+    assert all(np.isfinite(link.covariance).all() for link in links)
 
 
 def _cloud_with_nan() -> PointCloud:

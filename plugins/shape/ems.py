@@ -1028,13 +1028,25 @@ def fit_links(
             points_m, links, options, outlier_threshold_points, cluster_radius_m,
             seams if len(links) == 1 else None,
         )  # fmt: skip
-        proposal = _best_proposal(points_m, dense, links, options, proposals)
+        proposal = _best_proposal(
+            points_m, dense, links, options, proposals, outlier_threshold_points
+        )
         if proposal is None:
             break
         links = proposal
+    again = [link for link in again if _explained_points(link) >= outlier_threshold_points]
     if again and _evidence_gain(points_m, links, again, options) > 0:
         return again
     return links
+
+
+def _explained_points(link: EMSResult) -> int:
+    """How many points of the cloud the link explains (inlier probability of eq. 9 at least
+    0.5). A link refitted from the last view's can end up explaining none (a sliver beside
+    the object's outline: its covariance is then undefined); it counts as a link only when it
+    explains at least ``outlier_threshold_points``, as a link added on unexplained points
+    must."""
+    return int(np.count_nonzero(link.inlier_probability >= 0.5))
 
 
 def without_needless_shear(
@@ -1094,10 +1106,12 @@ def _best_proposal(
     links: list[EMSResult],
     options: EMSOptions,
     proposals: list[_Proposal],
+    min_points: int,
 ) -> list[EMSResult] | None:
     """The first of the proposals whose evidence gain exceeds its threshold, both fitted
     from the proposal's labels and refitted jointly (``dense``: :func:`_dense_mask` of the
-    points [N]); None when none is accepted."""
+    points [N]), each of whose links explains at least ``min_points`` points; None when
+    none is accepted."""
     for candidate in proposals:
         threshold = candidate.min_gain_nats * len(points_m)
         proposal = candidate.first_round or _fit_jointly(
@@ -1108,7 +1122,11 @@ def _best_proposal(
         refined = _fit_jointly(
             points_m, dense, _assign(points_m, proposal), options, _REFIT_ROUNDS, proposal
         )
-        if refined is not None and (_evidence_gain(points_m, links, refined, options) > threshold):
+        if (
+            refined is not None
+            and min(_explained_points(link) for link in refined) >= min_points
+            and _evidence_gain(points_m, links, refined, options) > threshold
+        ):
             logger.debug("EMS: %d links accepted", len(refined))
             return refined
     return None
