@@ -282,6 +282,27 @@ def test_initial_belief_comes_from_the_shape_and_the_prior(tmp_path: Path) -> No
     assert stds["com_y_0"] == pytest.approx(0.112 / 12**0.5, rel=0.03)
 
 
+def test_the_reported_com_adds_the_model_discrepancy_the_filter_keeps_its_own(
+    tmp_path: Path,
+) -> None:
+    """com_discrepancy_m [a, b] adds (a + b |kappa1|)^2 to each reported CoM variance (kappa1
+    the fitted taper), nothing to the other entries nor to the filter's own belief."""
+    shape = _standing_link([0.045, 0.06, 0.02], [0.1, 0.1], [-0.8, 0.0], 0.3)
+    plain = _filter(tmp_path, {"plugin": "filters.gnn"}).initialise(Scene(shape.cloud, shape))
+    specs = {
+        "model": {"plugin": "filters.gnn"},
+        "filter": {"plugin": "filters.dual", "with": {"com_discrepancy_m": [0.01, 0.02]}},
+    }
+    component = build_components(specs, tmp_path).component("filter")
+    reported = component.initialise(Scene(shape.cloud, shape))
+    added = reported.cov - plain.cov
+    rows = [reported.names.index(name) for name in ("com_x_0", "com_y_0")]
+    want = np.zeros_like(added)
+    want[rows, rows] = (0.01 + 0.02 * 0.8) ** 2
+    np.testing.assert_allclose(added, want, atol=1e-15)
+    np.testing.assert_allclose(component.belief.cov.numpy(), plain.cov, atol=1e-15)
+
+
 def _standing_link(scale_m: list[float], exponents: list[float], taper: list[float],
                    theta_rad: float) -> ShapeEstimate:  # fmt: skip
     """One superquadric link at (0.1, 0.4) turned theta_rad, as a shape estimate."""
