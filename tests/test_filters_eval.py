@@ -225,7 +225,10 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
     assert list(cell) == ["A-GNN", "U-GNN", "A-Analytical", "Prior", "m·f known"]
     first = json.loads((out / "runs/rect2/a-gnn/summary.json").read_text())
     truth, started = first["ground_truth"], first["prior"]  # the belief the run started from
-    assert (started["m_0"]["mean"], started["com_x_0"]["std"]) == pytest.approx((0.9, 0.028))
+    # The prior's CoM std with the skill's com_discrepancy_m [0.010, 0.011] added.
+    kappa1 = first["filter_start"]["links"][0]["superquadric"]["taper"][0]
+    com_std_m = math.hypot(0.028, 0.010 + 0.011 * abs(kappa1))
+    assert (started["m_0"]["mean"], started["com_x_0"]["std"]) == pytest.approx((0.9, com_std_m))
     m_0 = truth["parameters"]["m_0"]  # the references are scored on the same object
     assert cell["Prior"]["m_0"] == pytest.approx(abs(0.9 - m_0) / 1.4)
     assert cell["m·f known"]["CoM_0"] == 0.0
