@@ -78,6 +78,21 @@ def link_boxes(shape: ShapeEstimate) -> tuple[FloatArray, FloatArray]:
     return np.asarray(shape.initial_poses, dtype=np.float64), sizes
 
 
+def com_discrepancy_var(
+    shape: ShapeEstimate, layout: StateLayout, discrepancy_m: tuple[float, float]
+) -> FloatArray:
+    """Variance [n] added to the reported belief's diagonal: ``(a + b |kappa1|)^2`` on each
+    link's com_x and com_y (``discrepancy_m`` = (a, b), kappa1 the link's fitted taper), 0
+    elsewhere."""
+    base_m, per_taper_m = discrepancy_m
+    var = np.zeros(layout.size)
+    for i, link in enumerate(shape.links):
+        std_m = base_m + per_taper_m * abs(float(link.taper[0]))
+        for axis in "xy":
+            var[layout.index(f"com_{axis}_{i}")] = std_m**2
+    return var
+
+
 def footprint_com(shape: ShapeEstimate) -> tuple[FloatArray, FloatArray]:
     """Mean [L, 2] and covariance [L, 2, 2] (m, m², link frames) of a CoM uniform over each
     fitted link's mid-height outline (``link_outline``), the mean kept inside the box of half
@@ -434,6 +449,7 @@ class DualFilterComponent(Component):
         self.belief: Belief | None = None
         self.prior: Belief | None = None
         self.shape: ShapeEstimate | None = None
+        self._reported_var: FloatArray = np.zeros(0)
         self._observed_shape: ShapeEstimate | None = None
         self.history: list[dict[str, Any]] = []
 
@@ -445,6 +461,9 @@ class DualFilterComponent(Component):
         self.shape = self._observed_shape = scene.shape
         poses, _ = link_boxes(scene.shape)
         self.layout = StateLayout(len(poses))
+        self._reported_var = com_discrepancy_var(
+            scene.shape, self.layout, self.config.com_discrepancy_m
+        )
         if self.model.n_links not in (None, self.layout.n_links):
             raise ConfigError(
                 f"the process model handles {self.model.n_links} link(s) but the object has "
@@ -754,13 +773,7 @@ class DualFilterComponent(Component):
 
     def _public(self) -> GaussianBelief:
         """The belief as reported: the filter's, plus ``com_discrepancy_m``."""
-        assert self.belief is not None and self.layout is not None and self.shape is not None
+        assert self.belief is not None and self.layout is not None
         cov = self.belief.cov.numpy()
-        cov = 0.5 * (cov + cov.T)
-        base_m, per_taper_m = self.config.com_discrepancy_m
-        for i, link in enumerate(self.shape.links):
-            std_m = base_m + per_taper_m * abs(float(link.taper[0]))
-            for axis in "xy":
-                row = self.layout.index(f"com_{axis}_{i}")
-                cov[row, row] += std_m**2
+        cov = 0.5 * (cov + cov.T) + np.diag(self._reported_var)
         return GaussianBelief(self.belief.mean.numpy().copy(), cov, self.layout.names)
