@@ -30,6 +30,7 @@ from vistac.plugins.filters.dual import (
     project_feasible,
     sample_sigma_points,
     standardise_noise,
+    truncate_negative_means,
     unscented_points,
     weighted_moments,
     woodbury_update,
@@ -495,6 +496,47 @@ def test_projection_lands_on_the_feasible_set() -> None:
     assert not feasible(states, layout, link_size_m).all()
     is_feasible = feasible(states, layout, link_size_m)
     assert torch.equal(projected[is_feasible], states[is_feasible])
+
+
+def test_a_negative_mean_takes_the_moments_of_the_gaussian_truncated_at_zero() -> None:
+    from scipy.stats import truncnorm
+
+    mean = as_tensor([-1.0, 3.0, -2.0, 0.4])
+    cov = as_tensor([[1.0, 0.5, 0.0, 0.1], [0.5, 2.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0],
+                     [0.1, 0.0, 0.0, 0.5]])  # fmt: skip
+    new_mean, new_cov = truncate_negative_means(mean, cov, rows=(0, 3))
+    # x0 ~ N(-1, 1) given x0 > 0; x1 moves by its regression 0.5 on x0 (exact for a Gaussian).
+    x0_mean, x0_var = truncnorm.stats(1.0, np.inf, loc=-1.0, scale=1.0, moments="mv")
+    assert float(new_mean[0]) == pytest.approx(x0_mean, rel=1e-9)
+    assert float(new_cov[0, 0]) == pytest.approx(x0_var, rel=1e-9)
+    assert float(new_mean[1]) == pytest.approx(3.0 + 0.5 * (x0_mean + 1.0), rel=1e-9)
+    assert float(new_cov[1, 1]) == pytest.approx(2.0 - 0.25 + 0.25 * x0_var, rel=1e-9)
+    assert float(new_cov[0, 1]) == pytest.approx(0.5 * x0_var, rel=1e-9)
+    # Row 2 is not bounded; row 3's mean is positive: neither is truncated.
+    assert float(new_mean[2]) == -2.0 and new_cov[2, 2] == 1.0
+    assert float(new_mean[3]) == pytest.approx(0.4 + 0.1 * (x0_mean + 1.0), rel=1e-9)
+    assert_spd(new_cov)
+    unchanged = truncate_negative_means(mean.abs(), cov, rows=(0, 1, 3))
+    assert torch.equal(unchanged[0], mean.abs()) and torch.equal(unchanged[1], cov)
+
+
+def test_a_mass_the_forces_call_for_below_zero_keeps_a_positive_mean() -> None:
+    """The model sees every point with m <= 0 at the floor, so forces only a massless object
+    could give favour all of them alike: their raw values would pull the mean below zero."""
+    assert StateLayout(2).bounded_below == (0, 1, 4, 5, 8)
+    names = StateLayout(2).names[12:]
+    assert [names[row] for row in StateLayout(2).bounded_below] == [
+        "m_0", "f_0", "m_1", "f_1", "f_j_0"]  # fmt: skip
+    dual = toy_filter(sigma_points=400)
+    mean = as_tensor(PRIOR_MEAN.copy())
+    mean[6] = 0.05
+    belief, inputs = Belief(mean, torch.diag(as_tensor(PRIOR_VAR))), make_inputs()
+    generator = torch.Generator().manual_seed(3)
+    for _ in range(5):
+        observation = torch.cat([belief.mean[:3], as_tensor([-0.3, 1.2])])
+        belief = dual.step(belief, inputs, DT_S, observation, generator)
+    assert 0.0 < float(belief.mean[6]) < 0.05
+    assert_spd(belief.cov)
 
 
 def assert_spd(cov: Tensor) -> None:

@@ -18,7 +18,10 @@ The belief over the joint state ``s = (psi, phi)`` (pose/twist block, then param
   on C points, see ``marginal_log_likelihood``) and
   Liu-West kernel smoothing in its textbook form (``a = (3 delta - 1) / (2 delta)``,
   ``h^2 = 1 - a^2``; the paper's eq. 33 and ``a = h = 0.01`` are not used); the kernel mixture's
-  covariance, ``a^2 V + h^2 V``, equals the weighted particle covariance ``V``. Then the pose,
+  covariance, ``a^2 V + h^2 V``, equals the weighted particle covariance ``V``. A mass,
+  friction or joint friction whose mean has left the feasible set (the unprojected points
+  below zero outweighing the rest) takes the moments of the Gaussian truncated at zero
+  (``truncate_negative_means``). Then the pose,
   conditioned on the updated parameter mean (eq. 34-35), by an unscented update whose
   innovation covariance ``S = U W U^T + R`` is only ever inverted through the Woodbury
   identity in sigma-point space (k = 4098 observations in practice, never a k x k matrix).
@@ -304,6 +307,34 @@ def weighted_moments(points: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     deviation = points - mean.unsqueeze(-2)
     cov = (weights.unsqueeze(-1) * deviation).transpose(-1, -2) @ deviation
     return mean, symmetrize(cov)
+
+
+def truncate_negative_means(
+    mean: Tensor, cov: Tensor, rows: Sequence[int]
+) -> tuple[Tensor, Tensor]:
+    """A Gaussian mean [..., p], cov [..., p, p] whose entry ``i`` of ``rows`` has a mean <= 0
+    replaced by its moments truncated to ``x_i > 0``; the other entries follow by their
+    regression on ``x_i`` (exact for one truncation of a Gaussian; ``rows`` in turn).
+
+    Entries with a positive mean are left alone, so a belief that has not left the feasible
+    set is unchanged: truncating every step would push a mean near a bound away from it step
+    after step, each moment-matched Gaussian again having a tail below zero.
+    """
+    for row in rows:
+        var = cov[..., row, row].clamp_min(1e-30)
+        std = var.sqrt()
+        alpha = -mean[..., row] / std
+        normal = torch.distributions.Normal(0.0, 1.0)
+        mills = torch.exp(normal.log_prob(alpha) - torch.special.log_ndtr(-alpha))
+        new_mean = mean[..., row] + std * mills
+        new_var = var * (1.0 + alpha * mills - mills.square()).clamp_min(1e-9)
+        apply = (mean[..., row] <= 0).unsqueeze(-1)
+        gain = cov[..., row] / var.unsqueeze(-1)
+        shifted = mean + gain * (new_mean - mean[..., row]).unsqueeze(-1)
+        rescaled = cov + gain.unsqueeze(-1) * gain.unsqueeze(-2) * (new_var - var)[..., None, None]
+        mean = torch.where(apply, shifted, mean)
+        cov = torch.where(apply.unsqueeze(-1), symmetrize(rescaled), cov)
+    return mean, cov
 
 
 def liu_west(particles: Tensor, weights: Tensor, delta: float) -> tuple[Tensor, Tensor]:
@@ -997,6 +1028,9 @@ class DualFilter:
         parameter_mean, parameter_cov = liu_west(parameters, weights, self.liu_west_delta)
         eye = torch.eye(parameter_cov.shape[-1], dtype=DTYPE, device=parameter_cov.device)
         parameter_cov = parameter_cov + self.parameter_var_floor * eye
+        parameter_mean, parameter_cov = truncate_negative_means(
+            parameter_mean, parameter_cov, self.layout.bounded_below
+        )
         force_n = (weights.unsqueeze(-1) * prediction.force_n).sum(-2)
         pose = self._update_pose(belief_pred, parameter_mean, force_n, observation, noise_var)
         posterior = joint_belief(*pose, parameter_mean, parameter_cov)

@@ -70,6 +70,14 @@ class StateLayout:
     def index(self, name: str) -> int:
         return self.names.index(name)
 
+    @property
+    def bounded_below(self) -> tuple[int, ...]:
+        """Rows of the parameter block that are never negative: each link's m and f, and every
+        f_j."""
+        links = [4 * link + field for link in range(self.n_links) for field in (0, 1)]
+        joints = range(4 * self.n_links, 4 * self.n_links + self.n_joints)
+        return (*links, *joints)
+
     def link_pose(self, states: Tensor) -> Tensor:
         """[..., n] -> [..., L, 6] = (x, y, theta, vx, vy, omega) per link."""
         return states[..., self.pose_slice].reshape(*states.shape[:-1], self.n_links, 6)
