@@ -141,7 +141,11 @@ class ViewPlanner(Protocol):
     def next_view(
         self, cloud: PointCloud | None, shape: ShapeEstimate | None, views_taken: int
     ) -> Viewpoint | None:
-        """The next viewpoint, or None when enough has been seen."""
+        """The next viewpoint, or None when enough has been seen.
+
+        cloud: the segmented object so far; before this look's first view, where an earlier
+        look saw it (None before any), so that a view can aim at where the object was last.
+        """
         ...
 
 

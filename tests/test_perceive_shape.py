@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from vistac.cli import main
 
@@ -67,3 +68,37 @@ def test_the_run_prints_the_fitted_links_and_their_chamfer_distance(
     out = capsys.readouterr().out
     assert "shape: 1 link(s)" in out
     assert "link 0: semi-axes" in out and "Chamfer distance to the true links:" in out
+
+
+CORNER_SKILL = """
+version: 1
+name: look-twice
+seed: 0
+rate_hz: 15
+components:
+  world:  {plugin: sim.mujoco, with: {object: box.yaml}}
+  camera: {plugin: sim.depth_camera, with: {width: 160, height: 120}}
+  cloud:  {plugin: shape.open3d_cloud}
+  there:  {plugin: shape.uniform_views, with: {views: 1, target_m: [-0.36, 0.27, 0.03]}}
+  home:   {plugin: shape.uniform_views, with: {views: 1}}
+tree:
+  sequence:
+    - look: {views: there}
+    - look: {views: home}
+    - stop
+"""
+
+
+def test_a_later_look_aims_where_the_object_was_last_seen(tmp_path: Path) -> None:
+    """Pushes can take an object out of the view planner's fixed first view (here its
+    default target, (0, 0.45)); a later look's first view aims where the last look saw it."""
+    box = (SKILLS / "objects" / "rect1.yaml").read_text(encoding="utf-8")
+    box = box.replace("- 0.0\n- 0.45\n- 0.0", "- -0.36\n- 0.27\n- 0.3")
+    (tmp_path / "box.yaml").write_text(box, encoding="utf-8")
+    (tmp_path / "look.yaml").write_text(CORNER_SKILL, encoding="utf-8")
+    assert main(["run", str(tmp_path / "look.yaml"), "--out", str(tmp_path / "out")]) == 0
+    views = sorted((tmp_path / "out" / "views").glob("0*.npz"))
+    assert len(views) == 2
+    eye_m = np.load(views[1])["world_from_camera"][:3, 3]
+    # uniform_views' first view: 0.5 m from its target on the robot side, 50 deg up.
+    assert abs(eye_m[0] + 0.36) < 0.02 and eye_m[1] < 0.27 - 0.25

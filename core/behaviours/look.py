@@ -51,6 +51,9 @@ class Look(SkillBehaviour):
         self.clouds: list[PointCloud] = []
         self.merged: PointCloud | None = None
         self.object_cloud: PointCloud | None = None
+        # Where an earlier look saw the object: the first view aims there, not at the view
+        # planner's fixed target, which a few pushes may have moved the object out of.
+        self.last_seen: PointCloud | None = self.read("object_cloud")
         self.shape_estimate: ShapeEstimate | None = None
         self.busy_s = 0.0
 
@@ -58,9 +61,8 @@ class Look(SkillBehaviour):
         start_s = time.perf_counter()
         view = None
         if len(self.clouds) < self.config.max_views:
-            view = self.component("views").next_view(
-                self.object_cloud, self.shape_estimate, len(self.clouds)
-            )
+            seen = self.object_cloud if self.object_cloud is not None else self.last_seen
+            view = self.component("views").next_view(seen, self.shape_estimate, len(self.clouds))
         if view is None:
             self.busy_s += time.perf_counter() - start_s
             return self._finish()
