@@ -143,8 +143,9 @@ class ViewPlanner(Protocol):
     ) -> Viewpoint | None:
         """The next viewpoint, or None when enough has been seen.
 
-        cloud: the segmented object so far; before this look's first view, where an earlier
-        look saw it (None before any), so that a view can aim at where the object was last.
+        cloud: the segmented object so far (None before a look's first view). When a later
+        look's first view shows no object, ``look`` asks again for view 0 with the object
+        cloud of the last look, to aim where the object was last seen.
         """
         ...
 

@@ -91,14 +91,17 @@ tree:
 
 def test_a_later_look_aims_where_the_object_was_last_seen(tmp_path: Path) -> None:
     """Pushes can take an object out of the view planner's fixed first view (here its
-    default target, (0, 0.45)); a later look's first view aims where the last look saw it."""
+    default target, (0, 0.45)); a later look whose first view shows no object takes it again,
+    aimed where the last look saw the object."""
     box = (SKILLS / "objects" / "rect1.yaml").read_text(encoding="utf-8")
     box = box.replace("- 0.0\n- 0.45\n- 0.0", "- -0.36\n- 0.27\n- 0.3")
     (tmp_path / "box.yaml").write_text(box, encoding="utf-8")
     (tmp_path / "look.yaml").write_text(CORNER_SKILL, encoding="utf-8")
     assert main(["run", str(tmp_path / "look.yaml"), "--out", str(tmp_path / "out")]) == 0
     views = sorted((tmp_path / "out" / "views").glob("0*.npz"))
-    assert len(views) == 2
+    assert len(views) == 3  # the second look's first view (no object), and again
     eye_m = np.load(views[1])["world_from_camera"][:3, 3]
+    assert abs(eye_m[0]) < 1e-9 and abs(eye_m[1] - (0.45 - 0.5 * np.cos(np.radians(50)))) < 1e-9
+    eye_m = np.load(views[2])["world_from_camera"][:3, 3]
     # uniform_views' first view: 0.5 m from its target on the robot side, 50 deg up.
     assert abs(eye_m[0] + 0.36) < 0.02 and eye_m[1] < 0.27 - 0.25

@@ -51,8 +51,8 @@ class Look(SkillBehaviour):
         self.clouds: list[PointCloud] = []
         self.merged: PointCloud | None = None
         self.object_cloud: PointCloud | None = None
-        # Where an earlier look saw the object: the first view aims there, not at the view
-        # planner's fixed target, which a few pushes may have moved the object out of.
+        # Where an earlier look saw the object: if a few pushes have moved it out of the view
+        # planner's first view, the first view is taken again, aimed there.
         self.last_seen: PointCloud | None = self.read("object_cloud")
         self.shape_estimate: ShapeEstimate | None = None
         self.busy_s = 0.0
@@ -61,17 +61,34 @@ class Look(SkillBehaviour):
         start_s = time.perf_counter()
         view = None
         if len(self.clouds) < self.config.max_views:
-            seen = self.object_cloud if self.object_cloud is not None else self.last_seen
-            view = self.component("views").next_view(seen, self.shape_estimate, len(self.clouds))
+            view = self.component("views").next_view(
+                self.object_cloud, self.shape_estimate, len(self.clouds)
+            )
         if view is None:
             self.busy_s += time.perf_counter() - start_s
             return self._finish()
-        self._take_view(view)
+        if self.clouds or self.last_seen is None:
+            self._take_view(view)
+        else:
+            self._take_first_view(view, self.last_seen)
         estimator = self.component("shape")
         if estimator is not None and self.object_cloud is not None:
             self.shape_estimate = estimator.fit(self.object_cloud)
         self.busy_s += time.perf_counter() - start_s
         return Status.RUNNING
+
+    def _take_first_view(self, view: Viewpoint, last_seen: PointCloud) -> None:
+        """Take a later look's first ``view``; when it shows no object, take the planner's
+        first view again, aimed at ``last_seen`` (the object cloud of the last look)."""
+        try:
+            self._take_view(view)
+        except DataError as error:
+            log.info("look: %s; looking where the object was last seen", error)
+            self.clouds, self.merged = [], None
+            again = self.component("views").next_view(last_seen, None, 0)
+            if again is None:
+                raise
+            self._take_view(again)
 
     def _take_view(self, view: Viewpoint) -> None:
         camera, processor = self.component("camera"), self.component("processor")
