@@ -92,3 +92,23 @@ def test_object_region_follows_the_belief_and_the_action_sweeps_it() -> None:
     corners = action_region(push, moved, 0.05)
     np.testing.assert_allclose(corners.min(axis=0), [0.14, 0.44, 0.0], atol=1e-12)
     np.testing.assert_allclose(corners.max(axis=0), [0.26, 0.66, 0.05], atol=1e-12)
+
+
+def test_execute_action_watches_from_its_view_of_the_object(tmp_path: Path) -> None:
+    from vistac.cli import main
+
+    skills = Path(__file__).resolve().parents[1] / "skills"
+    view = "{azimuth_deg: 90, elevation_deg: 60, radius_m: 0.45}"
+    tree = f"[look, choose_action, {{execute_action: {{view: {view}}}}}, stop]"
+    out = tmp_path / "out"
+    args = ["run", str(skills / "explore_push.yaml"), "--out", str(out), "--set", f"tree={tree}",
+            "--set", "components.filter.with.push_evidence.enabled=false"]  # fmt: skip
+    assert main(args) == 0
+    data = np.load(out / "episodes" / "0000" / "data.npz")
+    object_xy = data["object_pose"][0, 0, :2]  # rect2 at (0, 0.45), the fit's centroid near it
+    for pose in data["camera_pose"]:
+        eye, forward = pose[:3, 3], pose[:3, 2]
+        assert np.degrees(np.arcsin(-forward[2])) == pytest.approx(60.0, abs=1e-6)
+        offset = eye[:2] - object_xy
+        assert np.degrees(np.arctan2(offset[1], offset[0])) == pytest.approx(90.0, abs=3.0)
+        assert np.linalg.norm(offset) == pytest.approx(0.45 * np.cos(np.radians(60)), abs=0.01)
