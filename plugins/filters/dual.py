@@ -324,8 +324,8 @@ def truncate_negative_means(
         var = cov[..., row, row].clamp_min(1e-30)
         std = var.sqrt()
         alpha = -mean[..., row] / std
-        normal = torch.distributions.Normal(0.0, 1.0)
-        mills = torch.exp(normal.log_prob(alpha) - torch.special.log_ndtr(-alpha))
+        log_pdf = -0.5 * alpha.square() - 0.5 * math.log(2.0 * math.pi)
+        mills = torch.exp(log_pdf - torch.special.log_ndtr(-alpha))  # phi(a) / (1 - Phi(a))
         new_mean = mean[..., row] + std * mills
         new_var = var * (1.0 + alpha * mills - mills.square()).clamp_min(1e-9)
         apply = (mean[..., row] <= 0).unsqueeze(-1)
