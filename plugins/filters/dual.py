@@ -320,6 +320,8 @@ def truncate_negative_means(
     set is unchanged: truncating every step would push a mean near a bound away from it step
     after step, each moment-matched Gaussian again having a tail below zero.
     """
+    if not bool((mean[..., list(rows)] <= 0).any()):
+        return mean, cov  # the usual case, at the cost of one comparison
     for row in rows:
         var = cov[..., row, row].clamp_min(1e-30)
         std = var.sqrt()
