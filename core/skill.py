@@ -199,7 +199,7 @@ def validate_skill(data: dict[str, Any], path: Path, registry: Registry) -> Skil
     tree, tree_issues = parse_tree(skill_file.tree, registry, context)
     issues += tree_issues
     if tree is not None:
-        issues += check_tree(tree, kinds)
+        issues += check_tree(tree, kinds, data_flow=not tree_issues)
     if issues:
         raise ConfigError(issues, str(path))
     assert tree is not None

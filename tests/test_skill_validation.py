@@ -52,6 +52,11 @@ def test_two_mistakes_are_both_reported_with_paths_and_exit_2(tmp_path: Path, cl
             "components.shape.with.shear_gain: Extra inputs are not permitted (did you mean "
             "'shear_gain_nats' or 'shear'?)",
         ),
+        (  # a node left out for its arguments leaves the next one's reads unchecked
+            "version: 1\nname: x\ncomponents: {}\n"
+            "tree: [{count: {tickz: 2}}, count_at_least]\n",
+            "tree[0].count.tickz: Extra inputs are not permitted (did you mean 'ticks'?)",
+        ),
         (
             "version: 1\nname: x\ncomponents: {}\ntree: {repeat: {do: stop, maxx: 2}}\n",
             "tree.repeat.maxx: Extra inputs are not permitted (did you mean 'max' or 'on_max'?)",
