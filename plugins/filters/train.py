@@ -117,6 +117,10 @@ class TrainConfig(BaseModel):
     filter_learning_rate: float = Field(
         default=2e-4, gt=0, description="Adam step of the end-to-end epochs (fine-tuning)"
     )
+    final_learning_rate_fraction: float = Field(
+        default=1.0, gt=0, le=1, description="Adam's step falls along a half cosine to this "
+        "fraction of its start over the epochs of each model (1: a constant step)",
+    )
     patience: int = Field(
         default=5, gt=0, description="epochs without validation gain before stopping"
     )
@@ -474,6 +478,13 @@ def batches(
         yield chunks[index]
 
 
+def _validation_randomness(config: TrainConfig) -> tuple[np.random.Generator, torch.Generator]:
+    """Fresh generators (numpy, torch) from one seed for each validation pass: the batches,
+    twist disturbances, clouds and sigma points of the validation loss are the same every
+    epoch, so that it changes only with the weights and picks the best epoch for them."""
+    return np.random.default_rng(config.seed + 1), torch.Generator().manual_seed(config.seed + 1)
+
+
 def fit(
     parameters: list[nn.Parameter],
     train_loss: Callable[[], Iterator[Tensor]],
@@ -487,9 +498,13 @@ def fit(
     """Adam with validation-based early stopping; restores the best weights, which may be the
     starting ones: an epoch that makes the validation loss worse (the end-to-end epochs can)
     never replaces a better model. ``learning_rate``: Adam's step (default the preset's).
-    Returns one row per epoch (train, val); the validation loss of the starting weights is
-    logged."""
+    Returns one row per epoch (train, val, learning_rate); the validation loss of the starting
+    weights is logged."""
     optimiser = torch.optim.Adam(parameters, lr=learning_rate or config.learning_rate)
+    start_lr = optimiser.param_groups[0]["lr"]
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
+        optimiser, T_max=max(1, epochs - 1), eta_min=start_lr * config.final_learning_rate_fraction
+    )
     with torch.no_grad():
         start = val_loss()
     log.info("%s: validation loss %.4g before training", label, start)
@@ -506,7 +521,9 @@ def fit(
             losses.append(float(loss.detach()))
         with torch.no_grad():
             val = val_loss()
-        history.append({"epoch": epoch, "train": float(np.mean(losses)), "val": val})
+        row = {"epoch": epoch, "train": float(np.mean(losses)), "val": val}
+        history.append(row | {"learning_rate": optimiser.param_groups[0]["lr"]})
+        schedule.step()
         _progress(label, epoch + 1, epochs, history[-1])
         if val < best - 1e-4:
             best, stale = val, 0
@@ -623,8 +640,9 @@ def _train_noise(
             yield noise_loss(noise_net, windows["train"][index], forces["train"][index], rng)
 
     def val() -> float:
+        fixed, _ = _validation_randomness(config)
         pairs = zip(windows["val"], forces["val"], strict=True)
-        return float(np.mean([float(noise_loss(noise_net, w, f, rng)) for w, f in pairs]))
+        return float(np.mean([float(noise_loss(noise_net, w, f, fixed)) for w, f in pairs]))
 
     params = list(noise_net.parameters())
     return fit(params, train, val, [noise_net], config.noise_epochs, config, "obs noise")
@@ -667,11 +685,10 @@ def _train_model(
                                config.truth_force_weight)
 
     def val() -> float:
-        """Twist disturbances drawn from the same seed every epoch (the batches are shuffled)."""
-        fixed = torch.Generator().manual_seed(config.seed + 1)
+        order, fixed = _validation_randomness(config)
         losses = [float(rollout_loss(model, b, config.rollout_steps, config.twist_noise, fixed,
                                      config.truth_force_weight))
-                  for b in batches(windows["val"], config.batch_size, rng)]  # fmt: skip
+                  for b in batches(windows["val"], config.batch_size, order)]  # fmt: skip
         return float(np.mean(losses)) if losses else math.inf
 
     params = list(model.net.parameters())
@@ -712,7 +729,10 @@ def _train_filter(
             yield loss(windows["train"][index])
 
     def val() -> float:
-        return float(np.mean([float(loss(w)) for w in windows["val"][:cap]]))
+        fixed, points = _validation_randomness(config)
+        losses = [filter_loss(model, noise_net, w, config, points, fixed)
+                  for w in windows["val"][:cap]]  # fmt: skip
+        return float(np.mean([float(value) for value in losses]))
 
     params = list(model.net.parameters()) + list(noise_net.parameters())
     return fit(
