@@ -343,35 +343,6 @@ def test_link_features_give_the_com_in_the_reference_frame() -> None:
     torch.testing.assert_close(com_m, torch.tensor([0.07, 0.01], dtype=DTYPE))
 
 
-def _joint_inputs(size: list[list[float]], offset: list[list[float]]) -> ProcessInput:
-    return ProcessInput(
-        tcp=torch.zeros(1, 6, dtype=DTYPE), pd_rad=torch.zeros(1, dtype=DTYPE),
-        is_pull=torch.zeros(1, dtype=DTYPE), link=torch.zeros(1, dtype=torch.int64),
-        link_size_m=torch.tensor([size], dtype=DTYPE),
-        link_offset=torch.tensor([offset], dtype=DTYPE),
-    )  # fmt: skip
-
-
-def test_the_hinge_lies_between_the_facing_sides_whatever_the_box_axes() -> None:
-    """Known answer: boxes of half extents (0.05, 0.03) and (0.04, 0.02) side by side along x,
-    centres 0.094 m apart: the hinge lies at x = 0.052 m (midway between the sides at 0.05 and
-    0.054) in link 0's frame. Turning either box's frame by a quarter (its half extents
-    swapped), as a superquadric fit may, leaves the hinge where it is in the world."""
-    pose = torch.tensor([[[[0.0, 0, 0, 0, 0, 0], [0.094, 0, 0, 0, 0, 0]]]], dtype=DTYPE)
-    aligned = _joint_inputs([[0.05, 0.03], [0.04, 0.02]], [[0, 0, 0], [0.094, 0, 0]])
-    want = nets.hinge_points(pose, aligned)
-    torch.testing.assert_close(want, torch.tensor([[[[0.052, 0.0]]]], dtype=DTYPE))
-    quarter = math.pi / 2
-    for size, offset, turned in (
-        ([[0.03, 0.05], [0.04, 0.02]], [[0, 0, 0], [0, -0.094, -quarter]], (quarter, 0.0)),
-        ([[0.05, 0.03], [0.02, 0.04]], [[0, 0, 0], [0.094, 0, quarter]], (0.0, quarter)),
-    ):
-        turned_pose = pose.clone()
-        turned_pose[0, 0, :, 2] = torch.tensor(turned, dtype=DTYPE)
-        got = nets.hinge_points(turned_pose, _joint_inputs(size, offset))
-        torch.testing.assert_close(got, want)
-
-
 def test_ff_rejects_another_link_count(tmp_path: Path) -> None:
     model = build(FFProcessModel, tmp_path, n_links=2)
     states, inputs = scenario((), 3)

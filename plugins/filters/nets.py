@@ -148,22 +148,18 @@ def perp(xy: Tensor) -> Tensor:
 def hinge_offsets(inputs: ProcessInput) -> Tensor:
     """Position of each joint k in the frame of link k: [..., 1, L - 1, 2] (m).
 
-    Joint k joins links k and k + 1; it lies midway between the point of link k's footprint
-    box nearest link k + 1's centre and the point of link k + 1's box nearest link k's centre
-    (boxes from ``link_size_m``, placed with the initial relative pose ``link_offset``). For
-    links side by side along their x axes these are the facing sides' centres; unlike those,
-    the points do not depend on which of its symmetric axes a fitted box's frame took.
+    Joint k joins links k and k + 1; it lies midway between link k's +x side centre and link
+    k + 1's -x side centre (footprint boxes from ``link_size_m``), placed with the initial
+    relative pose ``link_offset``.
     """
     offset = inputs.link_offset.unsqueeze(-3)  # [..., 1, L, 3]
     size = inputs.link_size_m.unsqueeze(-3)  # [..., 1, L, 2]
     parent, child = offset[..., :-1, :], offset[..., 1:, :]
-    parent_size, child_size = size[..., :-1, :], size[..., 1:, :]
     rel_xy = rotate(child[..., :2] - parent[..., :2], -parent[..., 2])
     rel_theta = child[..., 2] - parent[..., 2]
-    parent_side = torch.maximum(torch.minimum(rel_xy, parent_size), -parent_size)
-    parent_in_child = rotate(-rel_xy, -rel_theta)
-    child_near = torch.maximum(torch.minimum(parent_in_child, child_size), -child_size)
-    child_side = rel_xy + rotate(child_near, rel_theta)
+    zero = torch.zeros_like(rel_theta)
+    parent_side = torch.stack([size[..., :-1, 0], zero], -1)
+    child_side = rel_xy + rotate(torch.stack([-size[..., 1:, 0], zero], -1), rel_theta)
     return 0.5 * (parent_side + child_side)
 
 
