@@ -521,8 +521,10 @@ def fit(
             losses.append(float(loss.detach()))
         with torch.no_grad():
             val = val_loss()
-        row = {"epoch": epoch, "train": float(np.mean(losses)), "val": val}
-        history.append(row | {"learning_rate": optimiser.param_groups[0]["lr"]})
+        lr = optimiser.param_groups[0]["lr"]
+        history.append(
+            {"epoch": epoch, "train": float(np.mean(losses)), "val": val, "learning_rate": lr}
+        )
         schedule.step()
         _progress(label, epoch + 1, epochs, history[-1])
         if val < best - 1e-4:
