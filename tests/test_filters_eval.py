@@ -376,9 +376,8 @@ def test_plan_runs_sets_model_and_selector_per_variant(tmp_path: Path) -> None:
     assert [p.overrides for p in plans[:6]] == expected
     assert all(p.skipped is None for p in plans[:6])
     skipped = {p.variant.key: p.skipped for p in plans[6:] if p.skipped}
-    assert set(skipped) == {"a-ff", "a-analytical"}
+    assert set(skipped) == {"a-ff"}
     assert "no FF checkpoint for 2 link(s)" in skipped["a-ff"]
-    assert "homogeneous objects only (articulated)" in skipped["a-analytical"]
     assert run_dir_of(tmp_path, plans[1]) == tmp_path / "runs/rect2/u-gnn"
 
 

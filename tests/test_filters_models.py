@@ -84,7 +84,7 @@ def build(cls: type, tmp_path: Path, seed: int = 0, **options: Any) -> Any:
 MODELS: dict[str, tuple[Callable[[Path], Any], int]] = {
     "gnn": (lambda tmp: build(GNNProcessModel, tmp, hidden=32), 2),
     "ff": (lambda tmp: build(FFProcessModel, tmp, hidden=32, n_links=2), 2),
-    "analytical": (lambda tmp: build(AnalyticalProcessModel, tmp), 1),
+    "analytical": (lambda tmp: build(AnalyticalProcessModel, tmp), 2),
 }
 
 
@@ -348,12 +348,6 @@ def test_ff_rejects_another_link_count(tmp_path: Path) -> None:
     states, inputs = scenario((), 3)
     with pytest.raises(ValueError, match=r"n_links=2 \(state size 21\), got state size 32"):
         model.predict(states, inputs, DT_S)
-
-
-def test_analytical_rejects_two_links(tmp_path: Path) -> None:
-    states, inputs = scenario((), 2)
-    with pytest.raises(ValueError, match="one link"):
-        build(AnalyticalProcessModel, tmp_path).predict(states, inputs, DT_S)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -589,8 +589,6 @@ def model_override(
     ``learned`` options (:func:`learned_model_options`) go to the GNN and FF models."""
     n_links = len(spec.links)
     if model == "analytical":
-        if spec.type != "homogeneous":
-            return None, f"filters.analytical models homogeneous objects only ({spec.type})"
         return "components.model=" + json.dumps({"plugin": "filters.analytical"}), ""
     if model == "gnn":
         path: Path | None = folder / f"gnn_{kind}.pt"

@@ -14,7 +14,7 @@ import json
 import logging
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import torch
 from pydantic import Field
@@ -22,6 +22,7 @@ from torch import Tensor, nn
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
 from vistac.errors import ConfigError, ConfigIssue, DataError
 from vistac.plugins.filters.analytical import PushSettings, analytical_prediction
+from vistac.plugins.filters.chain import chain_step
 from vistac.plugins.filters.mirror import mirror_averaged
 from vistac.plugins.filters.nets import MLP, FeedForwardProcessNet, GraphProcessNet, layout_of
 from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput
@@ -275,11 +276,12 @@ class FFProcessModel(_LearnedProcessModel):
 
 
 class AnalyticalProcessModel(Component):
-    """``filters.analytical``: Lynch's quasi-static pushing of one homogeneous link (pulls move
-    the link rigidly with the gripper), with fixed, hand-tuned process noise."""
+    """``filters.analytical``: Lynch's quasi-static pushing of one homogeneous link, and of a
+    chain of welded or hinged links by minimum power (:mod:`vistac.plugins.filters.chain`);
+    pulls move the grasped link rigidly with the gripper. Fixed, hand-tuned process noise."""
 
     kind = "process_model"
-    n_links = 1
+    n_links = None
 
     class Config(ComponentConfig):
         pusher_friction: float = Field(default=0.5, ge=0.0)
@@ -289,6 +291,9 @@ class AnalyticalProcessModel(Component):
         contact_margin_m: float = Field(default=0.005, ge=0.0)
         pad_half_width_m: float = Field(default=0.012, ge=0.0)
         """Half width of the flat finger pad (line contact; 0: point contact)."""
+        contact_normal: Literal["push", "box"] = "push"
+        """The contact normal: the push direction, or the footprint box's side (see
+        ``vistac.plugins.filters.analytical.pad_contact``)."""
         position_std_m: float = Field(default=0.002, gt=0.0)
         theta_std_rad: float = Field(default=0.02, gt=0.0)
         speed_std_mps: float = Field(default=0.005, gt=0.0)
@@ -303,17 +308,17 @@ class AnalyticalProcessModel(Component):
             pusher_offset_m=config.pusher_offset_m,
             contact_margin_m=config.contact_margin_m,
             pad_half_width_m=config.pad_half_width_m,
+            contact_normal=config.contact_normal,
         )
         std = [config.position_std_m] * 2 + [config.theta_std_rad]
         std += [config.speed_std_mps] * 2 + [config.rate_std_radps]
         self.process_var = torch.tensor(std, dtype=DTYPE) ** 2
 
     def predict(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
-        """states [..., C, 10] (one link) -> Prediction with process_var [..., 6]."""
+        """states [..., C, 11 L - 1] -> Prediction with process_var [..., 6 L]."""
         n_links = layout_of(states).n_links
-        if n_links != 1:
-            raise ValueError(
-                f"filters.analytical models one link (state size 10), got {n_links} links "
-                f"(state size {states.shape[-1]}); use filters.gnn for articulated objects"
-            )
-        return analytical_prediction(states, inputs, dt_s, self.settings, self.process_var)
+        if n_links == 1:
+            return analytical_prediction(states, inputs, dt_s, self.settings, self.process_var)
+        pose, force = chain_step(states, inputs, dt_s, self.settings)
+        variance = self.process_var.repeat(n_links).expand(*inputs.tcp.shape[:-1], 6 * n_links)
+        return Prediction(pose=pose, force_n=force, process_var=variance)
