@@ -296,3 +296,42 @@ def test_a_weightless_flap_on_a_free_hinge_does_not_fly_off() -> None:
     speed = chain.link_twists(links, motion.z)[..., :2].norm(dim=-1)
     assert float(speed.max()) <= chain.MAX_SLIP_SPEEDUP * float(velocity.norm())
     close((rows @ motion.z.unsqueeze(-1))[..., 0], velocity, 1e-9)  # it sticks
+
+
+@pytest.mark.parametrize("n_links", [1, 2])
+def test_a_link_turns_in_a_weak_grasp_until_its_friction_holds_it(n_links: int) -> None:
+    """Pulling along +x by a grasp 30 mm to the +y side of link 0's CoM: a rigid grasp drags
+    the object straight; a grasp holding 0.02 N m lets the link turn clockwise (the CoM swings
+    behind the grasp) while the friction's moment about the grasp point equals what the grasp
+    holds; one holding 10 N m does not let it turn."""
+    states = torch.zeros(1, 11 * n_links - 1, dtype=DTYPE)
+    layout = StateLayout(n_links)
+    params = layout.parameter_slice.start
+    for link in range(n_links):
+        states[0, 6 * link] = 0.094 * link
+        states[0, params + 4 * link : params + 4 * link + 2] = torch.tensor([0.8, 0.3])
+    if n_links > 1:
+        states[0, -1] = 5.0  # a stiff hinge
+    inputs = ProcessInput(
+        tcp=torch.tensor([0.0, 0.03, 0.0, SPEED_MPS, 0.0, 0.0], dtype=DTYPE),
+        pd_rad=torch.tensor(0.0, dtype=DTYPE),
+        is_pull=torch.tensor(1.0, dtype=DTYPE),
+        link=torch.tensor(0),
+        link_size_m=torch.full((n_links, 2), 0.045, dtype=DTYPE),
+        link_offset=torch.tensor([[0.094 * k, 0.0, 0.0] for k in range(n_links)], dtype=DTYPE),
+    )
+    rates = {}
+    for grasp in (None, 0.02, 10.0):
+        pose = model(grasp_friction_nm=grasp).predict(states, inputs, DT_S).pose
+        rates[grasp] = float(pose.reshape(n_links, 6)[0, 5])
+    assert rates[None] == pytest.approx(0.0, abs=1e-12)
+    assert rates[0.02] < -0.01 and abs(rates[10.0]) < 1e-4
+    # Statics: about the grasp point the links' friction needs the grasp's full torque, 0.02
+    # N m counter-clockwise, against the link's clockwise turn.
+    links, com = chain.chain_links(states[None], inputs)
+    held_map = links.twist_map[:, :, 0]
+    grasp_rows = chain.point_velocity_rows(held_map, com[:, :, 0], inputs.tcp[:2].expand(1, 1, 2))
+    motion = chain.pull_motion(links, held_map, grasp_rows, inputs.tcp[3:].expand(1, 1, 3), 0.02)
+    arm = com - inputs.tcp[:2]
+    moment = (_cross(arm, motion.wrench[..., :2]) + motion.wrench[..., 2]).sum(-1)
+    close(moment, 0.02, 1e-4)

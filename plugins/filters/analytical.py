@@ -198,6 +198,9 @@ class PushSettings:
     pad_half_width_m: float = 0.012
     """Half width of the flat pad face across the push direction (the simulated gripper's pad
     is 24 mm wide, ``PAD_HALF_SIZE_M[1]``); 0 for a point pusher. See :func:`line_contact`."""
+    grasp_friction_nm: float | None = None
+    """The torque a pull's grasp holds before the link turns between the fingers (N m); None
+    for a rigid grasp. See :func:`vistac.plugins.filters.chain.pull_motion`."""
     contact_normal: Literal["push", "box"] = "push"
     """The contact's normal: the push direction (the pad's face, which the action planner sets
     within a few degrees of the surface normal), or the normal of the footprint box's side

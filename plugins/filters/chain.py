@@ -90,6 +90,17 @@ class ChainProblem(NamedTuple):
     rows: Tensor
     target: Tensor
     used: Tensor
+    grasp_row: Tensor | None = None
+    """[..., n]: the grasped link's rate, for a grasp that lets the link turn between the
+    fingers (a hinge to the gripper); None: no such grasp."""
+    grasp_rate: Tensor | None = None
+    """[...]: the gripper's rate, in z's units."""
+    grasp_friction_nm: Tensor | None = None
+    """[...]: the torque the grasp holds before the link turns in it."""
+
+
+_CHAIN = ChainProblem._fields[:7]
+"""The fields of a chain and its constraints (a push has no grasp)."""
 
 
 def chain_twist_map(com_m: Tensor, joints_m: Tensor) -> Tensor:
@@ -145,7 +156,21 @@ def power(problem: ChainProblem, z: Tensor, eta: float = SMOOTHING) -> Tensor:
     scaled = _scaled(problem, z)
     norm = torch.sqrt((scaled * scaled).sum(-1) + eta * eta)
     _, hinge = _hinge_rates(z, eta)
-    return (problem.f_max_n * norm).sum(-1) + (problem.joint_friction_nm * hinge).sum(-1)
+    value = (problem.f_max_n * norm).sum(-1) + (problem.joint_friction_nm * hinge).sum(-1)
+    grasp = _grasp_turn(problem, z, eta)
+    return value if grasp is None else value + grasp[2] * grasp[1]
+
+
+def _grasp_turn(
+    problem: ChainProblem, z: Tensor, eta: float
+) -> tuple[Tensor, Tensor, Tensor] | None:
+    """The grasped link's rate relative to the gripper [...], its smoothed magnitude and the
+    grasp's friction; None without a turning grasp."""
+    row, rate, friction = problem.grasp_row, problem.grasp_rate, problem.grasp_friction_nm
+    if row is None or rate is None or friction is None:
+        return None
+    turn = (row * z).sum(-1) - rate
+    return turn, torch.sqrt(turn * turn + (eta / _ARM_M) ** 2), friction
 
 
 def _gradient_hessian(problem: ChainProblem, z: Tensor, eta: float) -> tuple[Tensor, Tensor]:
@@ -167,7 +192,15 @@ def _gradient_hessian(problem: ChainProblem, z: Tensor, eta: float) -> tuple[Ten
     zeros = torch.zeros_like(z[..., :3])
     gradient = gradient + torch.cat([zeros, tau * rate / hinge], -1)
     bend = torch.cat([zeros, tau * (1.0 - (rate / hinge) ** 2) / hinge], -1)
-    return gradient, hessian + torch.diag_embed(bend)
+    hessian = hessian + torch.diag_embed(bend)
+    grasp = _grasp_turn(problem, z, eta)
+    if grasp is not None and problem.grasp_row is not None:
+        turn, magnitude, held = grasp
+        row = problem.grasp_row
+        gradient = gradient + (held * turn / magnitude).unsqueeze(-1) * row
+        weight = held * (1.0 - (turn / magnitude) ** 2) / magnitude
+        hessian = hessian + weight[..., None, None] * row.unsqueeze(-1) * row.unsqueeze(-2)
+    return gradient, hessian
 
 
 def solve_chain(problem: ChainProblem, eta: float = SMOOTHING) -> Tensor:
@@ -282,7 +315,9 @@ def push_motion(
     side = torch.tensor([1.0, -1.0], dtype=stick.dtype).reshape(2, *([1] * normal.dim()))
     edge = normal + side * mu * tangent
     edge_row = edge.unsqueeze(-2) @ contact_rows
-    both = ChainProblem(*(field.expand(2, *field.shape) for field in links))
+    both = ChainProblem(
+        *(getattr(links, name).expand(2, *getattr(links, name).shape) for name in _CHAIN)
+    )
     slide = solve_chain(both._replace(**_fields(edge_row, torch.ones_like(edge[..., :1]))))
     contact_velocity = (contact_rows @ slide.unsqueeze(-1))[..., 0]
     wanted = (velocity_mps * normal).sum(-1)
@@ -307,11 +342,31 @@ def _choose(values: Tensor, choice: Tensor) -> Tensor:
     return values.gather(0, index)[0]
 
 
-def pull_motion(links: ChainProblem, held_map: Tensor, twist: Tensor) -> Motion:
-    """The motion of the chain when one link, whose map is held_map [..., 3, n], moves with
-    the gripper's twist [..., 3] (v_x, v_y at its CoM, omega)."""
+def pull_motion(
+    links: ChainProblem,
+    held_map: Tensor,
+    grasp_rows: Tensor,
+    twist: Tensor,
+    grasp_friction_nm: float | None,
+) -> Motion:
+    """The motion of the chain when the gripper, moving with twist [..., 3] (v_x, v_y at the
+    grasp point, omega), holds one link: held_map [..., 3, n] is that link's map and
+    grasp_rows [..., 2, n] give the velocity of its point between the fingers. A rigid grasp
+    (grasp_friction_nm None) moves the link with the gripper; otherwise the link may turn
+    between the fingers, a hinge to the gripper with that friction."""
     scale = twist[..., :2].norm(dim=-1, keepdim=True) + twist[..., 2:].abs() * _ARM_M + _TINY
-    z = solve_chain(links._replace(**_fields(held_map, twist / scale)))
+    unit = twist / scale
+    if grasp_friction_nm is None:
+        rows = torch.cat([grasp_rows, held_map[..., 2:, :]], -2)
+        problem = links._replace(**_fields(rows, unit))
+    else:
+        problem = links._replace(
+            **_fields(grasp_rows, unit[..., :2]),
+            grasp_row=held_map[..., 2, :],
+            grasp_rate=unit[..., 2],
+            grasp_friction_nm=torch.full_like(unit[..., 2], grasp_friction_nm),
+        )
+    z = solve_chain(problem)
     return Motion(z * scale, friction_wrench(links, z))
 
 
@@ -383,13 +438,6 @@ def _push_contact(
     return _Contact(rows, normal, velocity, touching & into)
 
 
-def _gripper_twist(inputs: ProcessInput, com_m: Tensor) -> Tensor:
-    """The twist [..., C, 3] of a body held by the gripper, at the point com_m [..., C, 2]."""
-    tcp = inputs.tcp.unsqueeze(-2)
-    rate = tcp[..., 5:6].expand_as(com_m[..., :1])
-    return torch.cat([tcp[..., 3:5] + rate * perp(com_m - tcp[..., :2]), rate], -1)
-
-
 def chain_step(
     states: Tensor, inputs: ProcessInput, dt_s: float, settings: PushSettings
 ) -> tuple[Tensor, Tensor]:
@@ -415,8 +463,11 @@ def chain_step(
         wrench = torch.where(pushed[..., None, None], push.wrench, wrench)
     if bool(pulling.any()):
         held = inputs.link.unsqueeze(-1).expand_as(pulling)
-        gripper = _gripper_twist(inputs, _pick(com, held))
-        pull = pull_motion(links, _pick(links.twist_map, held), gripper)
+        held_map = _pick(links.twist_map, held)
+        tcp = inputs.tcp.unsqueeze(-2).expand(*pulling.shape, 6)
+        grasp_rows = point_velocity_rows(held_map, _pick(com, held), tcp[..., :2])
+        gripper = tcp[..., 3:]  # the TCP's velocity (between the fingers) and rate
+        pull = pull_motion(links, held_map, grasp_rows, gripper, settings.grasp_friction_nm)
         z = torch.where(pulling.unsqueeze(-1), pull.z, z)
         wrench = torch.where(pulling[..., None, None], pull.wrench, wrench)
 

@@ -291,6 +291,9 @@ class AnalyticalProcessModel(Component):
         contact_margin_m: float = Field(default=0.005, ge=0.0)
         pad_half_width_m: float = Field(default=0.012, ge=0.0)
         """Half width of the flat finger pad (line contact; 0: point contact)."""
+        grasp_friction_nm: float | None = Field(default=None, ge=0.0)
+        """Torque a pull's grasp holds before the link turns between the fingers; None: a
+        rigid grasp."""
         contact_normal: Literal["push", "box"] = "push"
         """The contact normal: the push direction, or the footprint box's side (see
         ``vistac.plugins.filters.analytical.pad_contact``)."""
@@ -309,6 +312,7 @@ class AnalyticalProcessModel(Component):
             contact_margin_m=config.contact_margin_m,
             pad_half_width_m=config.pad_half_width_m,
             contact_normal=config.contact_normal,
+            grasp_friction_nm=config.grasp_friction_nm,
         )
         std = [config.position_std_m] * 2 + [config.theta_std_rad]
         std += [config.speed_std_mps] * 2 + [config.rate_std_radps]
@@ -317,7 +321,8 @@ class AnalyticalProcessModel(Component):
     def predict(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
         """states [..., C, 11 L - 1] -> Prediction with process_var [..., 6 L]."""
         n_links = layout_of(states).n_links
-        if n_links == 1:
+        turning_grasp = self.settings.grasp_friction_nm is not None
+        if n_links == 1 and not (turning_grasp and bool((inputs.is_pull > 0.5).any())):
             return analytical_prediction(states, inputs, dt_s, self.settings, self.process_var)
         pose, force = chain_step(states, inputs, dt_s, self.settings)
         variance = self.process_var.repeat(n_links).expand(*inputs.tcp.shape[:-1], 6 * n_links)
