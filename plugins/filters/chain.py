@@ -33,8 +33,11 @@ would move the contact point faster than MAX_SLIP_SPEEDUP times the pusher is no
 and the contact sticks). The flat pad's line
 contact moves the contact point along the pad as in
 :func:`vistac.plugins.filters.analytical.line_contact`, about the whole chain's centre of
-friction ``sum_l f_max_l c_l / sum_l f_max_l``. A pull moves the grasped link rigidly with
-the gripper (three rows). The finger force is minus the sum of the links' friction forces.
+friction ``sum_l f_max_l c_l / sum_l f_max_l``. A pull moves the grasped link's point
+between the fingers with the gripper (two rows) and its rate with the gripper's (a third
+row), or, with a grasp friction ``tau_g``, lets it turn between the fingers, dissipating
+``tau_g |omega_k - omega_gripper|`` as one more hinge (:func:`pull_motion`). The finger force
+is minus the sum of the links' friction forces.
 
 For one link this is Lynch's solution (:func:`vistac.plugins.filters.analytical.
 quasi_static_push` gives the same twist; ``tests/test_filters_chain.py``).
