@@ -206,7 +206,7 @@ def chain_scenario(
     return states, inputs
 
 
-def model(**options: float | str) -> AnalyticalProcessModel:
+def model(**options: float | str | None) -> AnalyticalProcessModel:
     return TestContext(Path("."), 0).add(AnalyticalProcessModel, **options)
 
 
@@ -237,15 +237,15 @@ def test_a_welded_pair_turns_as_one_and_a_free_hinge_folds() -> None:
 
 
 def test_a_pulled_chain_trails_its_free_link_and_holds_a_stiff_one() -> None:
-    """Pulling link 0 along +x with link 1 turned by 0.3 rad: a free hinge lets link 1 turn
-    back towards the line of pulling; a stiff one holds it."""
+    """Pulling link 0 along +x by a rigid grasp with link 1 turned by 0.3 rad: a free hinge
+    lets link 1 turn back towards the line of pulling; a stiff one holds it."""
     free, inputs = chain_scenario(0.0, is_pull=1.0, second_theta=0.3)
-    trailing = model().predict(free, inputs, DT_S).pose.reshape(2, 6)
+    trailing = model(grasp_friction_nm=None).predict(free, inputs, DT_S).pose.reshape(2, 6)
     torch.testing.assert_close(trailing[0, 3:], torch.tensor([SPEED_MPS, 0, 0], dtype=DTYPE))
     assert trailing[1, 5] < 0
     stiff = free.clone()
     stiff[0, 20] = 1.0
-    held = model().predict(stiff, inputs, DT_S).pose.reshape(2, 6)
+    held = model(grasp_friction_nm=None).predict(stiff, inputs, DT_S).pose.reshape(2, 6)
     close(held[1, 3:], torch.tensor([SPEED_MPS, 0, 0], dtype=DTYPE), 1e-5)
 
 

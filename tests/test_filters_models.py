@@ -489,7 +489,8 @@ def test_no_motion_without_contact() -> None:
 
 def test_pull_moves_the_link_with_the_gripper(tmp_path: Path) -> None:
     states, inputs = scenario((), 1, is_pull=1.0)
-    prediction = build(AnalyticalProcessModel, tmp_path).predict(states, inputs, DT_S)
+    rigid = build(AnalyticalProcessModel, tmp_path, grasp_friction_nm=None)
+    prediction = rigid.predict(states, inputs, DT_S)
     moved = prediction.pose - states[..., :6]
     torch.testing.assert_close(moved[:, 0], torch.full((C,), SPEED_MPS * DT_S, dtype=DTYPE))
     torch.testing.assert_close(moved[:, 1:3], torch.zeros(C, 2, dtype=DTYPE))

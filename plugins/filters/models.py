@@ -291,9 +291,10 @@ class AnalyticalProcessModel(Component):
         contact_margin_m: float = Field(default=0.005, ge=0.0)
         pad_half_width_m: float = Field(default=0.012, ge=0.0)
         """Half width of the flat finger pad (line contact; 0: point contact)."""
-        grasp_friction_nm: float | None = Field(default=None, ge=0.0)
+        grasp_friction_nm: float | None = Field(default=0.1, ge=0.0)
         """Torque a pull's grasp holds before the link turns between the fingers; None: a
-        rigid grasp."""
+        rigid grasp. 0.1 N m predicted the simulated gripper's pulls best among 0.02-0.4 and
+        rigid (docs/results.md)."""
         contact_normal: Literal["push", "box"] = "push"
         """The contact normal: the push direction, or the footprint box's side (see
         ``vistac.plugins.filters.analytical.pad_contact``)."""
