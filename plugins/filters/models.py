@@ -278,7 +278,8 @@ class FFProcessModel(_LearnedProcessModel):
 class AnalyticalProcessModel(Component):
     """``filters.analytical``: Lynch's quasi-static pushing of one homogeneous link, and of a
     chain of welded or hinged links by minimum power (:mod:`vistac.plugins.filters.chain`);
-    pulls move the grasped link rigidly with the gripper. Fixed, hand-tuned process noise."""
+    a pull holds the grasped link's point between the fingers and lets the link turn there
+    against ``grasp_friction_nm`` (None: rigidly). Fixed, hand-tuned process noise."""
 
     kind = "process_model"
     n_links = None
