@@ -318,6 +318,24 @@ def test_eval_bad_input_is_exit_2(
     assert not (tmp_path / "runs").exists()
 
 
+def test_eval_checks_each_variants_settings_before_running(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A process-model option with a bad value fails at once, naming the variant and the
+    option, and leaves no output folder (before, every run exited 2 one after the other)."""
+    out = tmp_path / "eval"
+    code = main([
+        "-q", "eval", str(ROOT / "skills/explore_push.yaml"), "--out", str(out),
+        "--objects", str(ROOT / "skills/objects/rect2.yaml"), "--variants", "a-analytical",
+        "--set", "components.model.with.contact_normal=sideways",
+    ])  # fmt: skip
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "A-Analytical" in err
+    assert "components.model.with.contact_normal: Input should be 'push' or 'box'" in err
+    assert not out.exists()
+
+
 # ---------------------------------------------------------------------------------------------
 # Variants: model x action selector
 

@@ -34,6 +34,7 @@ import io
 import json
 import logging
 import math
+import shutil
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -996,11 +997,18 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
     chosen_variants(options)  # a bad --variants/--models pair fails before anything runs
     prior = skill_prior(options.skill)
     kind = skill_interaction(options.skill)
+    created = not options.out.exists()
     options.out.mkdir(parents=True, exist_ok=True)
-    objects = select_objects(options.objects, options.out, options.max_objects)
-    if not objects:
-        raise ConfigError("--objects: no objects selected")
-    plans = plan_runs(options, objects, kind)
+    try:
+        objects = select_objects(options.objects, options.out, options.max_objects)
+        if not objects:
+            raise ConfigError("--objects: no objects selected")
+        plans = plan_runs(options, objects, kind)
+        check_plans(plans, options.skill)
+    except ConfigError:
+        if created:  # nothing half-done left behind
+            shutil.rmtree(options.out, ignore_errors=True)
+        raise
     records = [run_record(plan, options, kind) for plan in plans]
     ranges = parameter_ranges()
     variants = list(dict.fromkeys(plan.variant for plan in plans))
@@ -1025,6 +1033,25 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
     }  # fmt: skip
     _write_reports(report, options.out)
     return report
+
+
+def check_plans(plans: Sequence[RunPlan], skill: Path) -> None:
+    """Validate the skill with each variant's overrides (its first planned run's) before any
+    run, so that a bad ``--set`` (say a process-model option the model lacks) fails at once
+    with the validation's message, not as every run exiting 2."""
+    from vistac.pluginmanager import load_plugins
+    from vistac.skill import load_skill
+
+    registry = load_plugins().registry
+    checked: set[str] = set()
+    for plan in plans:
+        if plan.skipped or plan.variant.key in checked:
+            continue
+        checked.add(plan.variant.key)
+        try:
+            load_skill(skill, registry, list(plan.overrides))
+        except ConfigError as error:
+            raise ConfigError(f"{plan.variant.label}: {error}") from None
 
 
 def _write_reports(report: dict[str, Any], out: Path) -> None:
