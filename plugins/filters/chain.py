@@ -60,8 +60,9 @@ from vistac.plugins.filters.state import GRAVITY_MPS2, ProcessInput, StateLayout
 
 NEWTON_STEPS = 30
 """Newton iterations (fixed: the same work for every point of a batch)."""
-STEP_SIZES = tuple(0.5**k for k in range(0, 16, 2))
-"""Line search: the step of these fractions of the Newton step that lowers the power most."""
+STEP_SIZES = (*(0.5**k for k in range(0, 16, 2)), 0.0)
+"""Line search: the step of these fractions of the Newton step that lowers the power most
+(0: none does, stay)."""
 SMOOTHING = 1e-3
 """eta: each link's norm is sqrt(|.|² + eta²), the motion scaled to unit speed. A link
 slower than about eta (at rest while the hinge turns) is held by part of its static
@@ -147,33 +148,30 @@ def _scaled(problem: ChainProblem, z: Tensor) -> Tensor:
     return torch.cat([twist[..., :2], problem.char_length_m.unsqueeze(-1) * twist[..., 2:]], -1)
 
 
-def _hinge_rates(z: Tensor, eta: float) -> tuple[Tensor, Tensor]:
-    """Each hinge's rate delta [..., L - 1] and its smoothed |delta| (rad/s)."""
-    rate = z[..., 3:]
-    return rate, torch.sqrt(rate * rate + (eta / _ARM_M) ** 2)
+def _turns(problem: ChainProblem, z: Tensor, eta: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The rotational dissipations of z [..., n]: each hinge's rate delta_k and, with a turning
+    grasp, the grasped link's rate relative to the gripper. Returns (rows [..., m, n] giving
+    each rate from z, the rates [..., m], their magnitudes smoothed by eta / 5 cm, the
+    frictions [..., m] in N m)."""
+    n_joints = problem.joint_friction_nm.shape[-1]
+    rows = torch.eye(z.shape[-1], dtype=z.dtype)[3 : 3 + n_joints].expand(*z.shape[:-1], -1, -1)
+    offset, friction = torch.zeros_like(z[..., 3:]), problem.joint_friction_nm
+    row, rate, held = problem.grasp_row, problem.grasp_rate, problem.grasp_friction_nm
+    if row is not None and rate is not None and held is not None:
+        rows = torch.cat([rows, row.unsqueeze(-2).expand(*z.shape[:-1], 1, -1)], -2)
+        offset = torch.cat([offset, rate.unsqueeze(-1).expand_as(z[..., :1])], -1)
+        friction = torch.cat([friction, held.unsqueeze(-1)], -1)
+    turn = (rows @ z.unsqueeze(-1))[..., 0] - offset
+    return rows, turn, torch.sqrt(turn * turn + (eta / _ARM_M) ** 2), friction
 
 
 def power(problem: ChainProblem, z: Tensor, eta: float = SMOOTHING) -> Tensor:
-    """The smoothed dissipated power [...] of z [..., n] (each norm and |delta| smoothed by
-    eta, a hinge's rate by eta / 5 cm)."""
+    """The smoothed dissipated power [...] of z [..., n] (each link's norm smoothed by eta,
+    each hinge's and the grasp's rate by eta / 5 cm)."""
     scaled = _scaled(problem, z)
     norm = torch.sqrt((scaled * scaled).sum(-1) + eta * eta)
-    _, hinge = _hinge_rates(z, eta)
-    value = (problem.f_max_n * norm).sum(-1) + (problem.joint_friction_nm * hinge).sum(-1)
-    grasp = _grasp_turn(problem, z, eta)
-    return value if grasp is None else value + grasp[2] * grasp[1]
-
-
-def _grasp_turn(
-    problem: ChainProblem, z: Tensor, eta: float
-) -> tuple[Tensor, Tensor, Tensor] | None:
-    """The grasped link's rate relative to the gripper [...], its smoothed magnitude and the
-    grasp's friction; None without a turning grasp."""
-    row, rate, friction = problem.grasp_row, problem.grasp_rate, problem.grasp_friction_nm
-    if row is None or rate is None or friction is None:
-        return None
-    turn = (row * z).sum(-1) - rate
-    return turn, torch.sqrt(turn * turn + (eta / _ARM_M) ** 2), friction
+    _, _, magnitude, friction = _turns(problem, z, eta)
+    return (problem.f_max_n * norm).sum(-1) + (friction * magnitude).sum(-1)
 
 
 def _gradient_hessian(problem: ChainProblem, z: Tensor, eta: float) -> tuple[Tensor, Tensor]:
@@ -190,26 +188,18 @@ def _gradient_hessian(problem: ChainProblem, z: Tensor, eta: float) -> tuple[Ten
         problem.f_max_n / norm
     )[..., None, None]
     hessian = (scaled_map.transpose(-1, -2) @ curvature @ scaled_map).sum(-3)
-    rate, hinge = _hinge_rates(z, eta)
-    tau = problem.joint_friction_nm
-    zeros = torch.zeros_like(z[..., :3])
-    gradient = gradient + torch.cat([zeros, tau * rate / hinge], -1)
-    bend = torch.cat([zeros, tau * (1.0 - (rate / hinge) ** 2) / hinge], -1)
-    hessian = hessian + torch.diag_embed(bend)
-    grasp = _grasp_turn(problem, z, eta)
-    if grasp is not None and problem.grasp_row is not None:
-        turn, magnitude, held = grasp
-        row = problem.grasp_row
-        gradient = gradient + (held * turn / magnitude).unsqueeze(-1) * row
-        weight = held * (1.0 - (turn / magnitude) ** 2) / magnitude
-        hessian = hessian + weight[..., None, None] * row.unsqueeze(-1) * row.unsqueeze(-2)
+    rows, turn, magnitude, friction = _turns(problem, z, eta)
+    slope = friction * turn / magnitude
+    bend = friction * (1.0 - (turn / magnitude) ** 2) / magnitude
+    gradient = gradient + (rows.transpose(-1, -2) @ slope.unsqueeze(-1))[..., 0]
+    hessian = hessian + rows.transpose(-1, -2) @ (bend.unsqueeze(-1) * rows)
     return gradient, hessian
 
 
 def solve_chain(problem: ChainProblem, eta: float = SMOOTHING) -> Tensor:
     """The minimum-power z [..., n] with A z = a (see the module docstring): Newton's method
     on the KKT system from the feasible point nearest 0, each step the one of STEP_SIZES that
-    lowers the power most (none: stay)."""
+    lowers the power most."""
     n = problem.rows.shape[-1]
     rows = torch.where(problem.used.unsqueeze(-1), problem.rows, 0.0)
     unused = torch.diag_embed((~problem.used).to(rows.dtype))
@@ -229,12 +219,9 @@ def solve_chain(problem: ChainProblem, eta: float = SMOOTHING) -> Tensor:
         if not iteration:  # the nearest feasible point
             z = step
             continue
-        trials = z + steps * step
-        value = power(problem, trials, eta)
-        best = value.argmin(0, keepdim=True)
-        improves = value.gather(0, best)[0] < power(problem, z, eta)
-        chosen = trials.gather(0, best.unsqueeze(-1).expand(1, *z.shape))[0]
-        z = torch.where(improves.unsqueeze(-1), chosen, z)
+        trials = z + steps * step  # the last step size is 0: stay
+        best = power(problem, trials, eta).argmin(0, keepdim=True)
+        z = trials.gather(0, best.unsqueeze(-1).expand(1, *z.shape))[0]
     return z
 
 
