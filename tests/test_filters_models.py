@@ -12,13 +12,14 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-from scipy.optimize import least_squares, minimize
+from scipy.optimize import least_squares, minimize, root
 from simctx import TestContext
 from torch import Tensor
 from vistac.errors import ConfigError, DataError
 from vistac.plugins.filters import nets
 from vistac.plugins.filters.analytical import (
     characteristic_length_m,
+    linear_pressure_length_m,
     quasi_static_push,
 )
 from vistac.plugins.filters.mirror import reflect_poses, reflect_scene
@@ -85,6 +86,9 @@ MODELS: dict[str, tuple[Callable[[Path], Any], int]] = {
     "gnn": (lambda tmp: build(GNNProcessModel, tmp, hidden=32), 2),
     "ff": (lambda tmp: build(FFProcessModel, tmp, hidden=32, n_links=2), 2),
     "analytical": (lambda tmp: build(AnalyticalProcessModel, tmp), 2),
+    "analytical_linear_pressure": (
+        lambda tmp: build(AnalyticalProcessModel, tmp, pressure="linear"), 2
+    ),
 }
 
 
@@ -414,8 +418,11 @@ def test_checkpoint_of_another_model_is_a_data_error(tmp_path: Path) -> None:
 # Analytical model: known answers
 
 
-def single_push(tcp_y_m: float, com: tuple[float, float] = (0.0, 0.0)) -> Prediction:
-    """One noiseless sigma point: link 0 at the origin, pushed along +x on its -x side."""
+def single_push(
+    tcp_y_m: float, com: tuple[float, float] = (0.0, 0.0), **options: Any
+) -> Prediction:
+    """One noiseless sigma point: link 0 at the origin, pushed along +x on its -x side by the
+    analytical model of ``options``."""
     states = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.8, 0.3, *com]], dtype=DTYPE)
     inputs = ProcessInput(
         tcp=torch.tensor([-HALF_M - 0.01, tcp_y_m, 0.0, SPEED_MPS, 0.0, 0.0], dtype=DTYPE),
@@ -425,7 +432,8 @@ def single_push(tcp_y_m: float, com: tuple[float, float] = (0.0, 0.0)) -> Predic
         link_size_m=torch.full((1, 2), HALF_M, dtype=DTYPE),
         link_offset=torch.zeros(1, 3, dtype=DTYPE),
     )
-    model = AnalyticalProcessModel(AnalyticalProcessModel.Config(), TestContext(Path(".")))
+    config = AnalyticalProcessModel.Config(**options)
+    model = AnalyticalProcessModel(config, TestContext(Path(".")))
     return model.predict(states, inputs, DT_S)
 
 
@@ -457,6 +465,16 @@ def test_flat_pad_pushes_a_nearby_com_straight() -> None:
     """The CoM's line of pushing meets the pad: the pressure centre moves there, no turn."""
     prediction = single_push(0.0, com=(0.0, -0.01))
     torch.testing.assert_close(prediction.pose[0, 5], torch.tensor(0.0, dtype=DTYPE))
+
+
+def test_linear_pressure_under_an_offset_com_turns_the_link_more() -> None:
+    """The pressure gathers under an offset CoM, so the link turns about it more easily; with a
+    centred CoM both pressures give nearly the same push."""
+    pressures = ("uniform", "linear")
+    centred = [single_push(0.02, pressure=p).pose[0, 5] for p in pressures]
+    torch.testing.assert_close(centred[0], centred[1], rtol=0.02, atol=0.0)
+    offset = [single_push(0.03, (0.0, -0.025), pressure=p).pose[0, 5] for p in pressures]
+    assert offset[1] < offset[0] < 0
 
 
 def test_line_contact_point() -> None:
@@ -511,6 +529,41 @@ def test_characteristic_length_matches_sampling() -> None:
     sampled = np.linalg.norm(points - com, axis=1).mean()
     c = characteristic_length_m(torch.tensor(half), torch.tensor(com))
     assert float(c) == pytest.approx(sampled, rel=3e-3)
+
+
+def _linear_pressure_length_by_root(half: np.ndarray, com: np.ndarray) -> float:
+    """c under p = max(0, 1 + g . u) with g from scipy's root finder on a dense grid."""
+    ticks = (np.arange(400) + 0.5) / 200.0 - 1.0
+    unit = np.stack(np.meshgrid(ticks, ticks, indexing="ij"), -1).reshape(-1, 2)
+
+    def pressure(g: np.ndarray) -> np.ndarray:
+        return np.maximum(0.0, 1.0 + unit @ g)
+
+    def centre_error(g: np.ndarray) -> np.ndarray:
+        p = pressure(g)
+        return (p[:, None] * unit).sum(0) / p.sum() - com / half
+
+    g = root(centre_error, 3.0 * com / half).x
+    p = pressure(g)
+    return float((p * np.linalg.norm((unit - com / half) * half, axis=1)).sum() / p.sum())
+
+
+@pytest.mark.parametrize(
+    ("com", "lift_off"),
+    [((0.0, 0.0), False), ((0.01, -0.004), False), ((0.03, 0.012), True), ((-0.04, 0.02), True)],
+)
+def test_linear_pressure_length_matches_an_independent_solution(
+    com: tuple[float, float], lift_off: bool
+) -> None:
+    """Centred: the uniform pressure's c; off centre the pressure follows the CoM, with part of
+    the footprint lifting off beyond |cx|/a + |cy|/b = 1/3."""
+    half = np.array([0.06, 0.03])
+    assert (np.abs(np.array(com) / half).sum() > 1.0 / 3.0) == lift_off
+    c = float(linear_pressure_length_m(torch.tensor(half), torch.tensor(com, dtype=DTYPE)))
+    assert c == pytest.approx(_linear_pressure_length_by_root(half, np.array(com)), rel=0.02)
+    if com == (0.0, 0.0):
+        uniform = characteristic_length_m(torch.tensor(half), torch.tensor(com, dtype=DTYPE))
+        assert c == pytest.approx(float(uniform), rel=0.01)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -3,11 +3,13 @@
 Limit surface. The table friction of a link of mass m and friction coefficient f is
 approximated by the ellipsoid ``(fx² + fy²) / f_max² + M² / m_max² = 1`` about the CoM with
 ``f_max = f m g`` and ``m_max = c f_max``. The characteristic length ``c`` is the mean distance
-of a footprint point from the CoM under uniform pressure, computed exactly for the fitted
-footprint box (half extents a1, a2) and the CoM offset (:func:`characteristic_length_m`). A twist
-(v, omega) at the CoM is produced by the wrench normal to the ellipsoid, so with
-``q = perp(contact)`` (omega x r = omega q) a point force F at the contact gives
-``v = k F, omega = k (q . F) / c²`` for some k >= 0.
+of a footprint point from the CoM, weighted by the pressure on the table: uniform over the
+fitted footprint box (half extents a1, a2; exact, :func:`characteristic_length_m`) or linear
+with its centre under the CoM, as a rigid link presses an elastic table
+(:func:`linear_pressure_length_m`; uniform pressure puts its centre at the box's centre, not
+under an offset CoM). A twist (v, omega) at the CoM is produced by the wrench normal to the
+ellipsoid, so with ``q = perp(contact)`` (omega x r = omega q) a point force F at the contact
+gives ``v = k F, omega = k (q . F) / c²`` for some k >= 0.
 
 Contact. The pusher moves with velocity u at the contact (inward normal n, friction
 coefficient mu_r). Sticking: the contact point moves with the pusher, ``k A F = u`` with
@@ -23,6 +25,7 @@ The force of the pusher is the point of the limit surface for the resulting twis
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -32,6 +35,7 @@ from vistac.plugins.filters.nets import box_gap_m, perp, rotate
 from vistac.plugins.filters.state import GRAVITY_MPS2, Prediction, ProcessInput, StateLayout
 
 _TINY = 1e-12
+Pressure = Literal["uniform", "linear"]
 
 
 class PushSolution(NamedTuple):
@@ -70,6 +74,49 @@ def characteristic_length_m(half_extents_m: Tensor, com_m: Tensor) -> Tensor:
         _corner_integral(a1 + sx * cx, a2 + sy * cy) for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)
     )
     return total / (4.0 * a1 * a2)
+
+
+_QUADRATURE = 12
+"""Midpoints per axis of the footprint box in :func:`linear_pressure_length_m`."""
+_PRESSURE_ITERATIONS = 6
+_MAX_CENTRE = 0.8
+"""The pressure's centre is kept within this fraction of the box's half extents."""
+_RIDGE = 1e-3
+
+
+def linear_pressure_length_m(half_extents_m: Tensor, com_m: Tensor) -> Tensor:
+    """Mean distance from the CoM of a footprint point weighted by a linear pressure.
+
+    A rigid link on an elastic table presses it with ``p = max(0, 1 + g . u)`` (u: the point
+    in box units, -1..1), and the pressure's centre lies under the CoM; g is found by Newton's
+    method from ``g = 3 com / a``, exact where no part lifts off. A CoM off the centre puts
+    the pressure near it, so the link turns about it more easily than under uniform pressure.
+    half_extents_m: [..., 2]; com_m: [..., 2] in the box frame (inside). Returns c [...] (m).
+    """
+    ticks = (torch.arange(_QUADRATURE, dtype=com_m.dtype) + 0.5) * (2.0 / _QUADRATURE) - 1.0
+    unit = torch.stack(torch.meshgrid(ticks, ticks, indexing="ij"), -1).reshape(-1, 2)  # [Q, 2]
+    half = half_extents_m.clamp(min=_TINY)
+    target = (com_m / half).clamp(-_MAX_CENTRE, _MAX_CENTRE)
+    slope = 3.0 * target
+    for _ in range(_PRESSURE_ITERATIONS):  # Newton on centre(slope) = target
+        raw = 1.0 + _dot(unit, slope.unsqueeze(-2))  # [..., Q]
+        pressure, active = raw.clamp(min=0.0), (raw > 0.0).to(raw.dtype)
+        total = pressure.sum(-1, keepdim=True).unsqueeze(-1)  # [..., 1, 1]
+        centre = (pressure.unsqueeze(-1) * unit).sum(-2) / total[..., 0]
+        moment = torch.einsum("...q,qi,qj->...ij", active, unit, unit)
+        spread = (active.unsqueeze(-1) * unit).sum(-2)  # [..., 2]
+        jacobian = (moment - centre.unsqueeze(-1) * spread.unsqueeze(-2)) / total
+        jacobian = jacobian + _RIDGE * torch.eye(2, dtype=raw.dtype)
+        step = torch.linalg.solve(jacobian, (target - centre).unsqueeze(-1))[..., 0]
+        slope = slope + step
+    pressure = (1.0 + _dot(unit, slope.unsqueeze(-2))).clamp(min=0.0)
+    distance = torch.linalg.norm((unit - target.unsqueeze(-2)) * half.unsqueeze(-2), dim=-1)
+    return (pressure * distance).sum(-1) / pressure.sum(-1).clamp(min=_TINY)
+
+
+def characteristic_length(pressure: Pressure) -> Callable[[Tensor, Tensor], Tensor]:
+    """The characteristic length of the limit surface under a ``pressure`` model."""
+    return linear_pressure_length_m if pressure == "linear" else characteristic_length_m
 
 
 def limit_surface_force(
@@ -205,6 +252,10 @@ class PushSettings:
     """The contact's normal: the push direction (the pad's face, which the action planner sets
     within a few degrees of the surface normal), or the normal of the footprint box's side
     nearest the pad (exact for boxes only; see :func:`pad_contact`)."""
+    pressure: Pressure = "uniform"
+    """How a link presses on the table: uniformly over its footprint box
+    (:func:`characteristic_length_m`) or linearly, centred under the CoM
+    (:func:`linear_pressure_length_m`)."""
 
 
 class PadContact(NamedTuple):
@@ -264,7 +315,7 @@ def analytical_step(
     tcp = inputs.tcp.unsqueeze(-2)  # [..., 1, 6]
     pd = inputs.pd_rad.unsqueeze(-1)
     half_extents = inputs.link_size_m[..., 0, :].unsqueeze(-2)
-    c = characteristic_length_m(half_extents, com_link)
+    c = characteristic_length(settings.pressure)(half_extents, com_link)
     f_max = friction * mass * GRAVITY_MPS2
 
     # Push, in the link frame.

@@ -50,8 +50,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 from vistac.plugins.filters.analytical import (
+    Pressure,
     PushSettings,
-    characteristic_length_m,
+    characteristic_length,
     line_contact,
     pad_contact,
 )
@@ -365,9 +366,11 @@ def _fields(rows: Tensor, target: Tensor) -> dict[str, Tensor]:
     return {"rows": padded_rows, "target": padded_target, "used": used}
 
 
-def chain_links(states: Tensor, inputs: ProcessInput) -> tuple[ChainProblem, Tensor]:
-    """The chain of states [..., C, 11 L - 1] (no constraints yet) and its world CoMs
-    [..., C, L, 2]."""
+def chain_links(
+    states: Tensor, inputs: ProcessInput, pressure: Pressure = "uniform"
+) -> tuple[ChainProblem, Tensor]:
+    """The chain of states [..., C, 11 L - 1] (no constraints yet; each link's limit surface
+    under the ``pressure`` model) and its world CoMs [..., C, L, 2]."""
     layout = StateLayout((states.shape[-1] + 1) // 11)
     pose, params = layout.link_pose(states), layout.link_parameters(states)
     theta, com_link = pose[..., 2], params[..., 2:]
@@ -377,7 +380,9 @@ def chain_links(states: Tensor, inputs: ProcessInput) -> tuple[ChainProblem, Ten
     none = twist_map.new_zeros(*twist_map.shape[:-3], 3, twist_map.shape[-1])
     links = ChainProblem(
         twist_map=twist_map,
-        char_length_m=characteristic_length_m(inputs.link_size_m.unsqueeze(-3), com_link),
+        char_length_m=characteristic_length(pressure)(
+            inputs.link_size_m.unsqueeze(-3), com_link
+        ),
         f_max_n=(params[..., 0] * params[..., 1]).clamp(min=0.0) * GRAVITY_MPS2 + _TINY,
         joint_friction_nm=layout.joint_friction(states).clamp(min=0.0),
         rows=none,
@@ -439,7 +444,7 @@ def chain_step(
     """
     layout = StateLayout((states.shape[-1] + 1) // 11)
     pose, com_link = layout.link_pose(states), layout.link_parameters(states)[..., 2:]
-    links, com = chain_links(states, inputs)
+    links, com = chain_links(states, inputs, settings.pressure)
     pulling = (inputs.is_pull > 0.5).unsqueeze(-1).expand_as(com[..., 0, 0])
     z = torch.zeros_like(links.rows[..., 0, :])
     wrench = torch.zeros_like(links.twist_map[..., 0])

@@ -21,7 +21,7 @@ from pydantic import Field
 from torch import Tensor, nn
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
 from vistac.errors import ConfigError, ConfigIssue, DataError
-from vistac.plugins.filters.analytical import PushSettings, analytical_prediction
+from vistac.plugins.filters.analytical import Pressure, PushSettings, analytical_prediction
 from vistac.plugins.filters.chain import chain_step
 from vistac.plugins.filters.mirror import mirror_averaged
 from vistac.plugins.filters.nets import MLP, FeedForwardProcessNet, GraphProcessNet, layout_of
@@ -299,6 +299,9 @@ class AnalyticalProcessModel(Component):
         contact_normal: Literal["push", "box"] = "push"
         """The contact normal: the push direction, or the footprint box's side (see
         ``vistac.plugins.filters.analytical.pad_contact``)."""
+        pressure: Pressure = "uniform"
+        """How a link presses on the table: ``uniform`` over its footprint box, or
+        ``linear``, centred under the CoM (a rigid link on an elastic table)."""
         position_std_m: float = Field(default=0.002, gt=0.0)
         theta_std_rad: float = Field(default=0.02, gt=0.0)
         speed_std_mps: float = Field(default=0.005, gt=0.0)
@@ -314,6 +317,7 @@ class AnalyticalProcessModel(Component):
             contact_margin_m=config.contact_margin_m,
             pad_half_width_m=config.pad_half_width_m,
             contact_normal=config.contact_normal,
+            pressure=config.pressure,
             grasp_friction_nm=config.grasp_friction_nm,
         )
         std = [config.position_std_m] * 2 + [config.theta_std_rad]
