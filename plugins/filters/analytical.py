@@ -80,7 +80,8 @@ _QUADRATURE = 12
 """Midpoints per axis of the footprint box in :func:`linear_pressure_length_m`."""
 _PRESSURE_ITERATIONS = 6
 _MAX_CENTRE = 0.8
-"""The pressure's centre is kept within this fraction of the box's half extents."""
+"""The pressure's centre is kept within this fraction of the box's half extents (a CoM
+nearer a side than the quadrature resolves); distances are still taken from the CoM."""
 _RIDGE = 1e-3
 
 
@@ -101,16 +102,16 @@ def linear_pressure_length_m(half_extents_m: Tensor, com_m: Tensor) -> Tensor:
     for _ in range(_PRESSURE_ITERATIONS):  # Newton on centre(slope) = target
         raw = 1.0 + _dot(unit, slope.unsqueeze(-2))  # [..., Q]
         pressure, active = raw.clamp(min=0.0), (raw > 0.0).to(raw.dtype)
-        total = pressure.sum(-1, keepdim=True).unsqueeze(-1)  # [..., 1, 1]
-        centre = (pressure.unsqueeze(-1) * unit).sum(-2) / total[..., 0]
+        total = pressure.sum(-1)[..., None]  # [..., 1]
+        centre = (pressure.unsqueeze(-1) * unit).sum(-2) / total
         moment = torch.einsum("...q,qi,qj->...ij", active, unit, unit)
         spread = (active.unsqueeze(-1) * unit).sum(-2)  # [..., 2]
-        jacobian = (moment - centre.unsqueeze(-1) * spread.unsqueeze(-2)) / total
+        jacobian = (moment - centre.unsqueeze(-1) * spread.unsqueeze(-2)) / total[..., None]
         jacobian = jacobian + _RIDGE * torch.eye(2, dtype=raw.dtype)
         step = torch.linalg.solve(jacobian, (target - centre).unsqueeze(-1))[..., 0]
         slope = slope + step
     pressure = (1.0 + _dot(unit, slope.unsqueeze(-2))).clamp(min=0.0)
-    distance = torch.linalg.norm((unit - target.unsqueeze(-2)) * half.unsqueeze(-2), dim=-1)
+    distance = torch.linalg.norm(unit * half.unsqueeze(-2) - com_m.unsqueeze(-2), dim=-1)
     return (pressure * distance).sum(-1) / pressure.sum(-1).clamp(min=_TINY)
 
 
