@@ -18,6 +18,7 @@ from vistac.plugins.filters.evaluate import (
     EvalOptions,
     calibration_table,
     chosen_variants,
+    difference_table,
     first_poses,
     learned_model_options,
     log_score,
@@ -223,6 +224,7 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
     }  # fmt: skip
     cell = tables["tables"]["homogeneous"]["push"]
     assert list(cell) == ["A-GNN", "U-GNN", "A-Analytical", "Prior", "m·f known"]
+    assert tables["differences"] == report["differences"] == {}  # one object: nothing to resample
     first = json.loads((out / "runs/rect2/a-gnn/summary.json").read_text())
     truth, started = first["ground_truth"], first["prior"]  # the belief the run started from
     # The prior's CoM std with the skill's com_discrepancy_m [0.010, 0.011] added.
@@ -586,3 +588,40 @@ def test_paired_eval_filters_the_first_variants_interactions(tmp_path: Path) -> 
     stamp = (runs / "a-analytical/eval_args.json").stat().st_mtime_ns
     assert main(args) == 0
     assert (runs / "a-analytical/eval_args.json").stat().st_mtime_ns == stamp
+
+
+def _scored_object(name: str, variant: str, m_error: float) -> dict[str, Any]:
+    record = _record(variant, 1.0 + m_error, 0.001)
+    return record | {"object": name}
+
+
+def test_differences_from_the_first_column_pair_the_objects_and_bound_the_noise() -> None:
+    """A column worse by the same error on every object differs by exactly that, with an
+    interval of width 0; one that is better on some objects and worse on others gets an
+    interval that holds 0; the same seed gives the same interval."""
+    errors = [0.1, -0.2, 0.3, -0.1, 0.2, -0.3, 0.05, -0.05]
+    records = [_scored_object(f"o{i}", "A-GNN", 0.0) for i in range(8)]
+    records += [_scored_object(f"o{i}", "U-GNN", 0.14) for i in range(8)]
+    records += [_scored_object(f"o{i}", "R-GNN", e) for i, e in enumerate(errors)]
+    records += [_scored_object("o0", "A-FF", 0.5)]  # one object only: no interval
+    table = difference_table(records, RANGES, ["A-GNN", "U-GNN", "R-GNN", "A-FF"])
+    cell = table["all"]["push"]
+    assert list(cell) == ["U-GNN", "R-GNN"]
+    # m_0's NRMSE 0.14 / 1.4 = 0.1, f_0's 0: overall 0.05 on every resample.
+    assert cell["U-GNN"] == pytest.approx(
+        {"difference": 0.05, "low": 0.05, "high": 0.05, "objects": 8.0}
+    )
+    rmse = math.sqrt(np.mean(np.square(errors)))
+    assert cell["R-GNN"]["difference"] == pytest.approx(rmse / 1.4 / 2)
+    assert 0.0 < cell["R-GNN"]["low"] < cell["R-GNN"]["difference"] < cell["R-GNN"]["high"]
+    assert difference_table(records, RANGES, ["A-GNN", "R-GNN"])["all"]["push"] == {
+        "R-GNN": cell["R-GNN"]
+    }  # deterministic
+    swapped = [_scored_object(f"o{i}", "B", e) for i, e in enumerate(errors[::-1])]
+    noisy = difference_table([*records[16:24], *swapped], RANGES, ["R-GNN", "B"])["all"]["push"]
+    assert noisy["B"]["difference"] == pytest.approx(0.0)  # the same errors, other objects
+    assert noisy["B"]["low"] < 0.0 < noisy["B"]["high"]
+    markdown = tables_markdown(nrmse_tables(records, RANGES, ["A-GNN", "U-GNN"]), {}, None, table)
+    assert "# Differences from A-GNN (overall NRMSE)" in markdown
+    assert "| all | push | U-GNN | +0.050 | [+0.050, +0.050] | 8 |" in markdown
+    assert "| objects | interaction | column | difference | 90 % interval | runs |" in markdown

@@ -814,6 +814,58 @@ def nrmse_by_interaction(
     return curves
 
 
+BOOTSTRAP_RESAMPLES = 2000
+"""Resamples of the objects behind each interval of :func:`difference_table`."""
+
+
+def overall_difference(
+    base: Sequence[Pairs], other: Sequence[Pairs], ranges: dict[str, float],
+    rng: np.random.Generator, level: float = 0.9,
+) -> dict[str, float]:
+    """``other``'s overall NRMSE minus ``base``'s on the same objects (runs paired by index),
+    with a ``level`` percentile interval from :data:`BOOTSTRAP_RESAMPLES` resamples of the
+    objects (both columns resampled together, so what the objects share cancels)."""
+
+    def difference(index: Iterable[int]) -> float:
+        chosen = list(index)
+        other_score, base_score = (
+            nrmse_rows([runs[i] for i in chosen], ranges)["overall"] for runs in (other, base)
+        )
+        return other_score - base_score
+
+    count = len(base)
+    draws = [difference(rng.integers(0, count, count)) for _ in range(BOOTSTRAP_RESAMPLES)]
+    low, high = np.nanpercentile(draws, [50 * (1 - level), 50 * (1 + level)])
+    return {"difference": difference(range(count)), "low": float(low), "high": float(high),
+            "objects": float(count)}  # fmt: skip
+
+
+def difference_table(
+    records: Sequence[dict[str, Any]], ranges: dict[str, float], columns: Sequence[str],
+    seed: int = 0,
+) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
+    """{type: {kind: {column: :func:`overall_difference` against the first column}}}, plus
+    type ``all``, over the objects where both columns scored a run; deterministic under
+    ``seed``."""
+    rng = np.random.default_rng(seed)
+    table: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
+    by_run = {(r["object"], r["kind"], r["variant"]): r for r in records if r["status"] == "ok"}
+    for kind_type in [*OBJECT_TYPES, "all"]:
+        for kind in sorted({r["kind"] for r in records}):
+            for column in columns[1:]:
+                pairs = [
+                    (by_run[(obj, k, columns[0])]["parameters"], record["parameters"])
+                    for (obj, k, variant), record in by_run.items()
+                    if k == kind and variant == column and kind_type in ("all", record["type"])
+                    and (obj, k, columns[0]) in by_run
+                ]  # fmt: skip
+                if len(pairs) >= 2:
+                    base, other = zip(*pairs, strict=True)
+                    cell = table.setdefault(kind_type, {}).setdefault(kind, {})
+                    cell[column] = overall_difference(base, other, ranges, rng)
+    return table
+
+
 def tracking_table(records: Sequence[dict[str, Any]]) -> dict[str, dict[str, dict[str, float]]]:
     """{type: {variant: mean position error (m), angle error (rad), runs}}, plus ``all``."""
     table: dict[str, dict[str, dict[str, float]]] = {}
@@ -860,12 +912,39 @@ def _fmt(value: float) -> str:
     return f"{value:.3f}" if math.isfinite(value) else "-"
 
 
+def _differences_markdown(
+    differences: dict[str, dict[str, dict[str, dict[str, float]]]],
+    tables: dict[str, dict[str, dict[str, dict[str, float]]]],
+) -> list[str]:
+    """The section of :func:`difference_table`, empty without differences."""
+    cells = [(t, k, c, v) for t, by_kind in differences.items() for k, by_column in
+             by_kind.items() for c, v in by_column.items()]  # fmt: skip
+    if not cells:
+        return []
+    first = next(iter(tables[cells[0][0]][cells[0][1]]))
+    lines = [f"# Differences from {first} (overall NRMSE)", ""]
+    lines += [
+        f"Each column's overall NRMSE minus {first}'s on the objects both ran (negative: "
+        f"lower than {first}), with a 90 % interval from resampling those objects "
+        f"{BOOTSTRAP_RESAMPLES} times; an interval that holds 0 does not rank the two.",
+        "",
+        "| objects | interaction | column | difference | 90 % interval | runs |",
+        "|---|---|---|---:|---|---:|",
+    ]
+    for kind_type, kind, column, value in cells:
+        lines += [f"| {kind_type} | {kind} | {column} | {value['difference']:+.3f} | "
+                  f"[{value['low']:+.3f}, {value['high']:+.3f}] | {value['objects']:.0f} |"]
+    return [*lines, ""]
+
+
 def tables_markdown(
     tables: dict[str, dict[str, dict[str, dict[str, float]]]],
     tracking: dict[str, dict[str, dict[str, float]]],
     calibration: dict[str, dict[str, float]] | None = None,
+    differences: dict[str, dict[str, dict[str, dict[str, float]]]] | None = None,
 ) -> str:
-    """Markdown NRMSE tables (one per object type and interaction) and the tracking table."""
+    """Markdown NRMSE tables (one per object type and interaction), the differences from the
+    first column (:func:`difference_table`), the tracking and the calibration tables."""
     lines = ["# Parameter NRMSE (RMSE / range over the object set)", ""]
     lines += [
         "CoM: the distance between the estimated and the true CoM, the truth in the fitted "
@@ -891,6 +970,7 @@ def tables_markdown(
                 text = [f"{c:.0f}" if row == "runs" else _fmt(c) for c in cells]
                 lines += [f"| {row} | " + " | ".join(text) + " |"]
             lines += [""]
+    lines += _differences_markdown(differences or {}, tables)
     lines += ["# Pose tracking (mean error of the pose change since each episode's start)", ""]
     lines += [
         "| objects | variant | position (mm) | angle (deg) | runs |",
@@ -1013,6 +1093,8 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
     ranges = parameter_ranges()
     variants = list(dict.fromkeys(plan.variant for plan in plans))
     labels = [variant.label for variant in variants]
+    columns = [*(v.label for v in variants if v.estimate_parameters), *REFERENCES]
+    scored = [*records, *reference_records(records, prior)]
     report = {
         "skill": str(options.skill), "interaction": kind, "seed": options.seed,
         "objects": [str(p) for p in objects], "models": list(options.models),
@@ -1022,10 +1104,8 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
         "ranges_note": "m, f, f_j: the object set's sampling ranges; CoM: range of the radial "
         "CoM over the 120 generated configurations (the CoM error is the distance between "
         "estimate and truth, the truth in the fitted frame at the first filter step)",
-        "tables": nrmse_tables(
-            [*records, *reference_records(records, prior)], ranges,
-            [*(v.label for v in variants if v.estimate_parameters), *REFERENCES],
-        ),
+        "tables": nrmse_tables(scored, ranges, columns),
+        "differences": difference_table(scored, ranges, columns[: columns.index("Prior") + 1]),
         "nrmse_vs_interactions": nrmse_by_interaction(records, ranges, labels),
         "tracking": tracking_table(records),
         "calibration": calibration_table(records, ranges),
@@ -1057,11 +1137,14 @@ def check_plans(plans: Sequence[RunPlan], skill: Path) -> None:
 def _write_reports(report: dict[str, Any], out: Path) -> None:
     (out / "eval.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
     (out / "tables.json").write_text(
-        json.dumps({key: report[key] for key in ("ranges", "tables", "tracking", "calibration",
-                                                   "nrmse_vs_interactions")}, indent=2),
+        json.dumps({key: report[key] for key in ("ranges", "tables", "differences", "tracking",
+                                                   "calibration", "nrmse_vs_interactions")},
+                   indent=2),
         encoding="utf-8",
     )  # fmt: skip
-    markdown = tables_markdown(report["tables"], report["tracking"], report["calibration"])
+    markdown = tables_markdown(
+        report["tables"], report["tracking"], report["calibration"], report["differences"]
+    )
     (out / "tables.md").write_text(markdown, encoding="utf-8")
     plot_curves(report["nrmse_vs_interactions"], out / "nrmse_vs_interactions.png")
     for record in report["runs"]:
