@@ -293,6 +293,18 @@ def _train_active(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_compare(args: argparse.Namespace) -> int:
+    from vistac.plugins.filters.evaluate import compare_evaluations, differences_markdown
+
+    table = compare_evaluations(args.base, args.other)
+    print("\n".join(differences_markdown(
+        table, f"{args.other} minus {args.base} (overall NRMSE)",
+        f"Each variant's overall NRMSE in {args.other} minus in {args.base} on the objects "
+        f"both ran (negative: lower in {args.other})",
+    )))  # fmt: skip
+    return 0
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from vistac.plugins.actions.campaign import is_goal_skill
     from vistac.plugins.filters.evaluate import (
@@ -503,6 +515,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_skill_options(evaluate)
     evaluate.set_defaults(func=cmd_eval)
+
+    compare = sub.add_parser(
+        "compare", help="two `vistac eval` folders of the same objects (say, two trainings' "
+        "checkpoints): each variant's overall NRMSE in OTHER minus BASE, with a 90 %% "
+        "interval from resampling the objects",
+    )  # fmt: skip
+    compare.add_argument("base", type=Path, help="the --out folder of one `vistac eval`")
+    compare.add_argument("other", type=Path, help="the --out folder of another")
+    compare.set_defaults(func=cmd_compare)
 
     objects = sub.add_parser("objects", help="object configurations")
     objects_sub = objects.add_subparsers(dest="objects_command", required=True)

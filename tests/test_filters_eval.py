@@ -625,3 +625,32 @@ def test_differences_from_the_first_column_pair_the_objects_and_bound_the_noise(
     assert "# Differences from A-GNN (overall NRMSE)" in markdown
     assert "| all | push | U-GNN | +0.050 | [+0.050, +0.050] | 8 |" in markdown
     assert "| objects | interaction | column | difference | 90 % interval | runs |" in markdown
+
+
+def _eval_folder(path: Path, m_errors: list[float]) -> Path:
+    """A `vistac eval` folder whose A-GNN runs have these mass errors (one object each)."""
+    runs = [_scored_object(f"o{i}", "A-GNN", e) for i, e in enumerate(m_errors)]
+    report = {"variants": {"A-GNN": {"model": "gnn", "selector": "info_gain",
+                                     "estimate_parameters": True}},
+              "runs": runs, "ranges": RANGES}  # fmt: skip
+    path.mkdir()
+    (path / "eval.json").write_text(json.dumps(report), encoding="utf-8")
+    return path
+
+
+def test_compare_pairs_two_evaluations_by_object(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`vistac compare BASE OTHER`: OTHER's overall NRMSE minus BASE's per variant, paired by
+    object; a folder without an evaluation, or none shared, is a clear error (exit 2)."""
+    base = _eval_folder(tmp_path / "base", [0.0, 0.0, 0.0])
+    other = _eval_folder(tmp_path / "other", [0.14, 0.14, 0.14, 0.7])  # o3: not in base
+    assert main(["compare", str(base), str(other)]) == 0
+    out = capsys.readouterr().out
+    assert f"# {other} minus {base} (overall NRMSE)" in out
+    assert "| all | push | A-GNN | +0.050 | [+0.050, +0.050] | 3 |" in out
+    assert main(["compare", str(base), str(tmp_path)]) == 2
+    assert "no eval.json; give the --out folder of a `vistac eval`" in capsys.readouterr().err
+    lone = _eval_folder(tmp_path / "lone", [0.1])
+    assert main(["compare", str(base), str(lone)]) == 2
+    assert "share no parameter-estimating variant" in capsys.readouterr().err

@@ -912,21 +912,19 @@ def _fmt(value: float) -> str:
     return f"{value:.3f}" if math.isfinite(value) else "-"
 
 
-def _differences_markdown(
-    differences: dict[str, dict[str, dict[str, dict[str, float]]]],
-    tables: dict[str, dict[str, dict[str, dict[str, float]]]],
+def differences_markdown(
+    differences: dict[str, dict[str, dict[str, dict[str, float]]]], heading: str, meaning: str
 ) -> list[str]:
-    """The section of :func:`difference_table`, empty without differences."""
+    """A section of differences (:func:`difference_table`, :func:`compare_evaluations`) under
+    ``heading``, ``meaning`` saying what each is; empty without differences."""
     cells = [(t, k, c, v) for t, by_kind in differences.items() for k, by_column in
              by_kind.items() for c, v in by_column.items()]  # fmt: skip
     if not cells:
         return []
-    first = next(iter(tables[cells[0][0]][cells[0][1]]))
-    lines = [f"# Differences from {first} (overall NRMSE)", ""]
+    lines = [f"# {heading}", ""]
     lines += [
-        f"Each column's overall NRMSE minus {first}'s on the objects both ran (negative: "
-        f"lower than {first}), with a 90 % interval from resampling those objects "
-        f"{BOOTSTRAP_RESAMPLES} times; an interval that holds 0 does not rank the two.",
+        f"{meaning}, with a 90 % interval from resampling those objects {BOOTSTRAP_RESAMPLES} "
+        "times; an interval that holds 0 does not rank the two.",
         "",
         "| objects | interaction | column | difference | 90 % interval | runs |",
         "|---|---|---|---:|---|---:|",
@@ -935,6 +933,45 @@ def _differences_markdown(
         lines += [f"| {kind_type} | {kind} | {column} | {value['difference']:+.3f} | "
                   f"[{value['low']:+.3f}, {value['high']:+.3f}] | {value['objects']:.0f} |"]
     return [*lines, ""]
+
+
+_TAGS = ("base", "other")
+
+
+def compare_evaluations(
+    base: Path, other: Path
+) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
+    """{type: {kind: {variant: :func:`overall_difference`}}}: each parameter-estimating
+    variant's overall NRMSE in the `vistac eval` folder ``other`` minus in ``base``, paired by
+    object (two trainings' checkpoints on the same objects, say). ConfigError when a folder
+    holds no evaluation or the two share no variant on two or more objects."""
+    reports = [_read_report(folder) for folder in (base, other)]
+    variants = [label for label, variant in reports[0]["variants"].items()
+                if variant["estimate_parameters"] and label in reports[1]["variants"]]  # fmt: skip
+    table: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
+    for label in variants:
+        records = [run | {"variant": tag} for tag, report in zip(_TAGS, reports, strict=True)
+                   for run in report["runs"] if run["variant"] == label]  # fmt: skip
+        for kind_type, by_kind in difference_table(records, reports[0]["ranges"], _TAGS).items():
+            for kind, cells in by_kind.items():
+                table.setdefault(kind_type, {}).setdefault(kind, {})[label] = cells["other"]
+    if not table:
+        raise ConfigError(
+            f"{base} and {other} share no parameter-estimating variant run on two or more of "
+            "the same objects; compare evaluations of the same objects and variants"
+        )
+    return table
+
+
+def _read_report(folder: Path) -> dict[str, Any]:
+    path = folder / "eval.json"
+    if not path.is_file():
+        raise ConfigError(f"{folder}: no eval.json; give the --out folder of a `vistac eval`")
+    try:
+        report = json.loads(path.read_text(encoding="utf-8"))
+        return {key: report[key] for key in ("variants", "runs", "ranges")}
+    except (ValueError, KeyError, TypeError) as error:
+        raise ConfigError(f"{path}: not a `vistac eval` report ({error!r})") from None
 
 
 def tables_markdown(
@@ -970,7 +1007,13 @@ def tables_markdown(
                 text = [f"{c:.0f}" if row == "runs" else _fmt(c) for c in cells]
                 lines += [f"| {row} | " + " | ".join(text) + " |"]
             lines += [""]
-    lines += _differences_markdown(differences or {}, tables)
+    if differences:
+        first = next(iter(next(iter(next(iter(tables.values())).values()))))
+        lines += differences_markdown(
+            differences, f"Differences from {first} (overall NRMSE)",
+            f"Each column's overall NRMSE minus {first}'s on the objects both ran (negative: "
+            f"lower than {first})",
+        )
     lines += ["# Pose tracking (mean error of the pose change since each episode's start)", ""]
     lines += [
         "| objects | variant | position (mm) | angle (deg) | runs |",
