@@ -654,3 +654,6 @@ def test_compare_pairs_two_evaluations_by_object(
     lone = _eval_folder(tmp_path / "lone", [0.1])
     assert main(["compare", str(base), str(lone)]) == 2
     assert "share no parameter-estimating variant" in capsys.readouterr().err
+    (lone / "eval.json").write_text("{not json", encoding="utf-8")
+    assert main(["compare", str(lone), str(base)]) == 2
+    assert "eval.json: not a `vistac eval` report" in capsys.readouterr().err

@@ -814,6 +814,8 @@ def nrmse_by_interaction(
     return curves
 
 
+Differences = dict[str, dict[str, dict[str, dict[str, float]]]]
+"""{type: {interaction: {column: difference, low, high, objects}}}."""
 BOOTSTRAP_RESAMPLES = 2000
 """Resamples of the objects behind each interval of :func:`difference_table`."""
 
@@ -843,12 +845,12 @@ def overall_difference(
 def difference_table(
     records: Sequence[dict[str, Any]], ranges: dict[str, float], columns: Sequence[str],
     seed: int = 0,
-) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
+) -> Differences:
     """{type: {kind: {column: :func:`overall_difference` against the first column}}}, plus
     type ``all``, over the objects where both columns scored a run; deterministic under
     ``seed``."""
     rng = np.random.default_rng(seed)
-    table: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
+    table: Differences = {}
     by_run = {(r["object"], r["kind"], r["variant"]): r for r in records if r["status"] == "ok"}
     for kind_type in [*OBJECT_TYPES, "all"]:
         for kind in sorted({r["kind"] for r in records}):
@@ -913,7 +915,7 @@ def _fmt(value: float) -> str:
 
 
 def differences_markdown(
-    differences: dict[str, dict[str, dict[str, dict[str, float]]]], heading: str, meaning: str
+    differences: Differences, heading: str, meaning: str
 ) -> list[str]:
     """A section of differences (:func:`difference_table`, :func:`compare_evaluations`) under
     ``heading``, ``meaning`` saying what each is; empty without differences."""
@@ -940,7 +942,7 @@ _TAGS = ("base", "other")
 
 def compare_evaluations(
     base: Path, other: Path
-) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
+) -> Differences:
     """{type: {kind: {variant: :func:`overall_difference`}}}: each parameter-estimating
     variant's overall NRMSE in the `vistac eval` folder ``other`` minus in ``base``, paired by
     object (two trainings' checkpoints on the same objects, say). ConfigError when a folder
@@ -948,7 +950,7 @@ def compare_evaluations(
     reports = [_read_report(folder) for folder in (base, other)]
     variants = [label for label, variant in reports[0]["variants"].items()
                 if variant["estimate_parameters"] and label in reports[1]["variants"]]  # fmt: skip
-    table: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
+    table: Differences = {}
     for label in variants:
         records = [run | {"variant": tag} for tag, report in zip(_TAGS, reports, strict=True)
                    for run in report["runs"] if run["variant"] == label]  # fmt: skip
@@ -978,7 +980,7 @@ def tables_markdown(
     tables: dict[str, dict[str, dict[str, dict[str, float]]]],
     tracking: dict[str, dict[str, dict[str, float]]],
     calibration: dict[str, dict[str, float]] | None = None,
-    differences: dict[str, dict[str, dict[str, dict[str, float]]]] | None = None,
+    differences: Differences | None = None,
 ) -> str:
     """Markdown NRMSE tables (one per object type and interaction), the differences from the
     first column (:func:`difference_table`), the tracking and the calibration tables."""
