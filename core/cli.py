@@ -516,11 +516,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_skill_options(evaluate)
     evaluate.set_defaults(func=cmd_eval)
 
-    compare = sub.add_parser(
-        "compare", help="two `vistac eval` folders of the same objects (say, two trainings' "
-        "checkpoints): each variant's overall NRMSE in OTHER minus BASE, with a 90 %% "
-        "interval from resampling the objects",
-    )  # fmt: skip
+    about = ("two `vistac eval` folders of the same objects (say, two trainings' checkpoints): "
+             "each variant's overall NRMSE in OTHER minus BASE, with a 90 % interval from "
+             "resampling the objects")  # fmt: skip
+    compare = sub.add_parser("compare", help=about.replace("%", "%%"), description=about)
     compare.add_argument("base", type=Path, help="the --out folder of one `vistac eval`")
     compare.add_argument("other", type=Path, help="the --out folder of another")
     compare.set_defaults(func=cmd_compare)
