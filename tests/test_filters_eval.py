@@ -621,7 +621,9 @@ def test_differences_from_the_first_column_pair_the_objects_and_bound_the_noise(
     noisy = difference_table([*records[16:24], *swapped], RANGES, ["R-GNN", "B"])["all"]["push"]
     assert noisy["B"]["difference"] == pytest.approx(0.0)  # the same errors, other objects
     assert noisy["B"]["low"] < 0.0 < noisy["B"]["high"]
-    markdown = tables_markdown(nrmse_tables(records, RANGES, ["A-GNN", "U-GNN"]), {}, None, table)
+    markdown = tables_markdown(
+        nrmse_tables(records, RANGES, ["A-GNN", "U-GNN"]), {}, None, table, "A-GNN"
+    )
     assert "# Differences from A-GNN (overall NRMSE)" in markdown
     assert "| all | push | U-GNN | +0.050 | [+0.050, +0.050] | 8 |" in markdown
     assert "| objects | interaction | column | difference | 90 % interval | runs |" in markdown

@@ -820,25 +820,46 @@ BOOTSTRAP_RESAMPLES = 2000
 """Resamples of the objects behind each interval of :func:`difference_table`."""
 
 
+def _normalised_squares(
+    runs: Sequence[Pairs], names: Sequence[str], ranges: dict[str, float]
+) -> np.ndarray:
+    """[runs, rows] each run's squared error of each row over its range (:func:`nrmse` of the
+    one pair); NaN where a run lacks the row."""
+    return np.array([
+        [nrmse([pairs[name]], ranges[family_of(name)]) ** 2 if name in pairs else np.nan
+         for name in names]
+        for pairs in runs
+    ])  # fmt: skip
+
+
+def _overall_nrmse(squares: np.ndarray) -> np.ndarray:
+    """:func:`nrmse_rows`'s ``overall`` [...] of squared errors [..., runs, rows]: the mean over
+    the rows that have a run of the root of their mean."""
+    present = ~np.isnan(squares)
+    count = present.sum(-2)
+    rows = np.sqrt(np.where(present, squares, 0.0).sum(-2) / np.maximum(count, 1))
+    scored = count > 0
+    return np.where(scored, rows, 0.0).sum(-1) / np.where(scored.any(-1), scored.sum(-1), np.nan)
+
+
 def overall_difference(
     base: Sequence[Pairs], other: Sequence[Pairs], ranges: dict[str, float],
-    rng: np.random.Generator, level: float = 0.9,
+    seed: int = 0, level: float = 0.9,
 ) -> dict[str, float]:
     """``other``'s overall NRMSE minus ``base``'s on the same objects (runs paired by index),
     with a ``level`` percentile interval from :data:`BOOTSTRAP_RESAMPLES` resamples of the
-    objects (both columns resampled together, so what the objects share cancels)."""
-
-    def difference(index: Iterable[int]) -> float:
-        chosen = list(index)
-        other_score, base_score = (
-            nrmse_rows([runs[i] for i in chosen], ranges)["overall"] for runs in (other, base)
-        )
-        return other_score - base_score
-
+    objects (both columns resampled together, so what the objects share cancels; the same
+    resamples under the same ``seed``)."""
+    names = sorted({name for pairs in (*base, *other) for name in pairs})
+    other_squares, base_squares = (
+        _normalised_squares(runs, names, ranges) for runs in (other, base)
+    )
     count = len(base)
-    draws = [difference(rng.integers(0, count, count)) for _ in range(BOOTSTRAP_RESAMPLES)]
-    low, high = np.nanpercentile(draws, [50 * (1 - level), 50 * (1 + level)])
-    return {"difference": difference(range(count)), "low": float(low), "high": float(high),
+    draws = np.random.default_rng(seed).integers(0, count, (BOOTSTRAP_RESAMPLES, count))
+    resampled = _overall_nrmse(other_squares[draws]) - _overall_nrmse(base_squares[draws])
+    low, high = np.nanpercentile(resampled, [50 * (1 - level), 50 * (1 + level)])
+    difference = _overall_nrmse(other_squares) - _overall_nrmse(base_squares)
+    return {"difference": float(difference), "low": float(low), "high": float(high),
             "objects": float(count)}  # fmt: skip
 
 
@@ -847,9 +868,8 @@ def difference_table(
     seed: int = 0,
 ) -> Differences:
     """{type: {kind: {column: :func:`overall_difference` against the first column}}}, plus
-    type ``all``, over the objects where both columns scored a run; deterministic under
-    ``seed``."""
-    rng = np.random.default_rng(seed)
+    type ``all``, over the objects where both columns scored a run; each interval depends on
+    its two columns and ``seed`` only."""
     table: Differences = {}
     by_run = {(r["object"], r["kind"], r["variant"]): r for r in records if r["status"] == "ok"}
     for kind_type in [*OBJECT_TYPES, "all"]:
@@ -864,7 +884,7 @@ def difference_table(
                 if len(pairs) >= 2:
                     base, other = zip(*pairs, strict=True)
                     cell = table.setdefault(kind_type, {}).setdefault(kind, {})
-                    cell[column] = overall_difference(base, other, ranges, rng)
+                    cell[column] = overall_difference(base, other, ranges, seed)
     return table
 
 
@@ -981,6 +1001,7 @@ def tables_markdown(
     tracking: dict[str, dict[str, dict[str, float]]],
     calibration: dict[str, dict[str, float]] | None = None,
     differences: Differences | None = None,
+    differences_from: str = "",
 ) -> str:
     """Markdown NRMSE tables (one per object type and interaction), the differences from the
     first column (:func:`difference_table`), the tracking and the calibration tables."""
@@ -1009,13 +1030,11 @@ def tables_markdown(
                 text = [f"{c:.0f}" if row == "runs" else _fmt(c) for c in cells]
                 lines += [f"| {row} | " + " | ".join(text) + " |"]
             lines += [""]
-    if differences:
-        first = next(iter(next(iter(next(iter(tables.values())).values()))))
-        lines += differences_markdown(
-            differences, f"Differences from {first} (overall NRMSE)",
-            f"Each column's overall NRMSE minus {first}'s on the objects both ran (negative: "
-            f"lower than {first})",
-        )
+    lines += differences_markdown(
+        differences or {}, f"Differences from {differences_from} (overall NRMSE)",
+        f"Each column's overall NRMSE minus {differences_from}'s on the objects both ran "
+        f"(negative: lower than {differences_from})",
+    )
     lines += ["# Pose tracking (mean error of the pose change since each episode's start)", ""]
     lines += [
         "| objects | variant | position (mm) | angle (deg) | runs |",
@@ -1151,6 +1170,7 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
         "estimate and truth, the truth in the fitted frame at the first filter step)",
         "tables": nrmse_tables(scored, ranges, columns),
         "differences": difference_table(scored, ranges, columns[: columns.index("Prior") + 1]),
+        "differences_from": columns[0],
         "nrmse_vs_interactions": nrmse_by_interaction(records, ranges, labels),
         "tracking": tracking_table(records),
         "calibration": calibration_table(records, ranges),
@@ -1182,13 +1202,15 @@ def check_plans(plans: Sequence[RunPlan], skill: Path) -> None:
 def _write_reports(report: dict[str, Any], out: Path) -> None:
     (out / "eval.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
     (out / "tables.json").write_text(
-        json.dumps({key: report[key] for key in ("ranges", "tables", "differences", "tracking",
+        json.dumps({key: report[key] for key in ("ranges", "tables", "differences",
+                                                   "differences_from", "tracking",
                                                    "calibration", "nrmse_vs_interactions")},
                    indent=2),
         encoding="utf-8",
     )  # fmt: skip
     markdown = tables_markdown(
-        report["tables"], report["tracking"], report["calibration"], report["differences"]
+        report["tables"], report["tracking"], report["calibration"], report["differences"],
+        report["differences_from"],
     )
     (out / "tables.md").write_text(markdown, encoding="utf-8")
     plot_curves(report["nrmse_vs_interactions"], out / "nrmse_vs_interactions.png")
