@@ -198,6 +198,24 @@ def test_a_right_triangle_keeps_its_shear(footprint: str) -> None:
     assert make_estimator(shear_gain_nats=100.0).fit(PointCloud(points)).links[0].taper[2] == 0.0
 
 
+@pytest.mark.parametrize("kappa1", [0.5, -0.5])
+def test_a_tilted_tapered_shape_off_the_table_is_fitted_in_place(kappa1: float) -> None:
+    """Off the table a fit's negative kappa1 is flipped by a half turn about the shape's own z
+    axis; a turn about the world's would move a tilted shape away from its points."""
+    from vistac.plugins.shape.ems import fit_superquadric
+
+    params = np.zeros(len(PARAMETER_NAMES))
+    params[0:3] = [0.03, 0.06, 0.02]
+    params[3:5] = [0.4, 0.6]
+    params[5] = kappa1
+    params[8:13] = [0.5, 0.3, 0.3, 0.5, -0.3]  # y, yaw, z, pitch, roll
+    points = sample_surface(to_superquadric(params), 800, np.random.default_rng(1))
+    result = fit_superquadric(points, EMSOptions(on_table=False, shear=False))
+    assert result.params[5] >= 0.0
+    assert abs(result.params[5] - abs(kappa1)) < 0.05
+    assert distance_to_surface_m(result.superquadric, points).mean() < 0.001
+
+
 def test_estimate_layout_and_inlier_cloud() -> None:
     rng = np.random.default_rng(7)
     truth = upright([0.04, 0.06, 0.025], [0.1, 0.1], [0.05, 0.4], 0.3)
@@ -325,6 +343,12 @@ def _cloud_with_nan() -> PointCloud:
 def test_bad_input_is_a_data_error(cloud: PointCloud, message: str) -> None:
     with pytest.raises(DataError, match=message):
         make_estimator().fit(cloud)
+
+
+def test_too_few_points_off_the_table_names_no_table() -> None:
+    with pytest.raises(DataError, match="only 20 points, fewer than min_points = 50") as error:
+        make_estimator(on_table=False).fit(PointCloud(np.full((20, 3), -0.5)))
+    assert "table" not in str(error.value)
 
 
 def test_sampled_surface_points_lie_on_the_surface() -> None:

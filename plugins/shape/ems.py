@@ -818,16 +818,17 @@ def _parameter_covariance(
 
 
 def _canonical(params: FloatArray, options: EMSOptions) -> FloatArray:
-    """Resolve symmetries: kappa1 >= 0 (yaw + pi flips it); angles wrapped to (-pi, pi]."""
+    """Resolve symmetries: kappa1 >= 0 (a half turn about the shape's own z axis, which maps
+    (x, y) to (-x, -y), flips it and keeps the shear); angles wrapped to (-pi, pi]."""
     out = params.copy()
+    frame = to_superquadric(out).world_from_sq[:3, :3]
     if out[_KAPPA1] < 0:
         out[_KAPPA1] = -out[_KAPPA1]
-        out[_YAW] += np.pi
+        frame = frame @ np.diag([-1.0, -1.0, 1.0])
     period = 2 * np.pi if options.taper else np.pi
+    out[[_YAW, _PITCH, _ROLL]] = _euler_zyx(frame)
     if options.on_table:
         out[_YAW] = (out[_YAW] + period / 2) % period - period / 2
-    else:
-        out[[_YAW, _PITCH, _ROLL]] = _euler_zyx(to_superquadric(out).world_from_sq[:3, :3])
     return out
 
 
@@ -1457,7 +1458,15 @@ class EMSEstimator(Component):
                 "invalid depth pixels before fitting"
             )
         clearance = self.config.table_clearance_m
-        above = points[points[:, 2] > clearance] if self.config.on_table else points
+        if not self.config.on_table:
+            if len(points) < self.config.min_points:
+                raise DataError(
+                    f"shape.ems: only {len(points)} points, fewer than min_points = "
+                    f"{self.config.min_points}; is the object in view? Move the camera closer, "
+                    "add views, or lower min_points"
+                )
+            return points
+        above = points[points[:, 2] > clearance]
         if len(above) < self.config.min_points:
             raise DataError(
                 f"shape.ems: only {len(above)} of {len(points)} points lie above the table "
