@@ -14,6 +14,7 @@ from vistac.plugins.touch.library import known_class
 from vistac.plugins.touch.meshes import apply_pose
 from vistac.plugins.touch.metrics import two_way_hausdorff
 from vistac.plugins.touch.pf import (
+    Particles,
     TouchParticleFilter,
     contact_log_likelihood,
     miss_log_likelihood,
@@ -93,6 +94,31 @@ def test_misses_are_negative_information(tmp_path: Path) -> None:
     # points on the probe path inside the workspace are free space
     free = pf.free_path(np.array([0.0, 0.5, 0.9]), np.array([0.0, 0.5, 0.31]))
     assert len(free) > 0 and np.all(free[:, 2] <= 0.5 + 1e-9)
+
+
+def test_the_mle_is_the_heaviest_particle_after_resampling(tmp_path: Path) -> None:
+    """Resampling gives every particle the same weight; the MLE candidates are still ranked by
+    posterior mass (copies), not by their place in the list: 90 wrong chairs first, then a
+    bottle at the true pose holding half the mass."""
+    config = TouchParticleFilter.Config(
+        classes=["chair", "bottle"], mle_candidates=8, resample_count=100,
+        roughen_position_m=0.0, roughen_rotation_deg=0.0,
+    )  # fmt: skip
+    pf = TouchParticleFilter(config, Ctx(tmp_path))
+    pose = a_pose(0)
+    for start, target, contact in surface_touches("bottle", pose, 6, 0):
+        pf.update(start, target, contact)
+    rotation = np.r_[np.tile(np.eye(3), (90, 1, 1)), np.tile(pose[:3, :3], (10, 1, 1))]
+    translation = np.r_[np.tile([0.0, 0.5, 0.3], (90, 1)), np.tile(pose[:3, 3], (10, 1))]
+    log_weight = np.r_[np.zeros(90), np.full(10, np.log(9.0))]
+    pf.particles = Particles(
+        np.r_[np.zeros(90, int), np.ones(10, int)], rotation, translation, log_weight,
+        np.zeros(100),
+    )  # fmt: skip
+    outside = np.array([2.0, 2.0, 2.0])  # a miss outside the workspace: no new evidence
+    estimate = pf.update(outside, outside - [0.0, 0.0, 0.1], None)
+    assert estimate["mle_class"] == "bottle"
+    np.testing.assert_allclose(pf.mle_pose(), pose, atol=1e-9)
 
 
 def test_explorers_conform_and_stop_when_the_surface_is_covered(tmp_path: Path) -> None:

@@ -82,7 +82,7 @@ class _Explorer(Component, ABC):
         return self._approach(target, normal)
 
     def _reached(self, contacts: FloatArray) -> bool:
-        """Whether the last touch made contact near its target (within half the threshold)."""
+        """Whether the last touch made contact near its target (within ``dhd_threshold_m``)."""
         if len(contacts) == self._contact_count or self._pending is None:
             return False
         return bool(np.linalg.norm(contacts[-1] - self._pending[0]) <= self.config.dhd_threshold_m)

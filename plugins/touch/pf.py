@@ -75,23 +75,32 @@ class ShapeClass:
 @dataclass
 class Particles:
     """class index [N], rotation [N, 3, 3] and translation [N, 3] (world_from_object),
-    log weight [N]."""
+    log weight [N], and log copies [N]: the log of how many resampled copies a particle's row
+    stands for (0 for a roughened copy or a new proposal), so that its posterior mass, which
+    resampling spreads over equal weights, still ranks it."""
 
     cls: Any
     rotation: FloatArray
     translation: FloatArray
     log_weight: FloatArray
+    log_copies: FloatArray
 
     @classmethod
     def empty(cls) -> Particles:
-        return cls(np.zeros(0, int), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0))
+        return cls(
+            np.zeros(0, int), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0)
+        )
 
     def __len__(self) -> int:
         return len(self.cls)
 
     def take(self, index: Any) -> Particles:
         return Particles(
-            self.cls[index], self.rotation[index], self.translation[index], self.log_weight[index]
+            self.cls[index],
+            self.rotation[index],
+            self.translation[index],
+            self.log_weight[index],
+            self.log_copies[index],
         )
 
     def concat(self, other: Particles) -> Particles:
@@ -100,6 +109,7 @@ class Particles:
             np.concatenate([self.rotation, other.rotation]),
             np.concatenate([self.translation, other.translation]),
             np.concatenate([self.log_weight, other.log_weight]),
+            np.concatenate([self.log_copies, other.log_copies]),
         )
 
     def pose(self, index: int) -> FloatArray:
@@ -288,8 +298,10 @@ class TouchParticleFilter(Component):
         index = stochastic_universal_sampling(self._normalised_weights(), count, self._rng)
         self.particles = self.particles.take(index)
         self.particles.log_weight = np.full(count, -np.log(count))
-        duplicate = np.flatnonzero(np.r_[False, index[1:] == index[:-1]])
-        self._roughen(duplicate)
+        first = np.r_[True, index[1:] != index[:-1]]  # SUS indices come sorted
+        self.particles.log_copies = np.zeros(count)
+        self.particles.log_copies[first] = np.log(np.diff(np.r_[np.flatnonzero(first), count]))
+        self._roughen(np.flatnonzero(~first))
 
     def _roughen(self, rows: Any) -> None:
         if len(rows) == 0:
@@ -302,11 +314,13 @@ class TouchParticleFilter(Component):
         )
 
     def _find_mle(self) -> None:
-        """The MLE particle: the best, over all data, of the top-weighted candidates."""
+        """The MLE particle: the best, over all data, of the candidates of most posterior mass
+        (weight times resampled copies)."""
         if len(self.particles) == 0:
             self._mle = None
             return
-        top = np.argsort(-self.particles.log_weight)[: self.config.mle_candidates]
+        mass = self.particles.log_weight + self.particles.log_copies
+        top = np.argsort(-mass)[: self.config.mle_candidates]
         contact_ll, miss_ll = self._all_data(self.particles.take(top))
         total = contact_ll.sum(axis=1) + miss_ll.sum(axis=1)
         best = int(np.argmax(total))
@@ -369,9 +383,8 @@ class TouchParticleFilter(Component):
             self.normals[first[query]],
             self.contacts[second[query]],
         )
-        new = Particles(
-            np.full(len(poses), index), poses[:, :3, :3], poses[:, :3, 3], np.zeros(len(poses))
-        )
+        cls, count = np.full(len(poses), index), len(poses)
+        new = Particles(cls, poses[:, :3, :3], poses[:, :3, 3], np.zeros(count), np.zeros(count))
         subset_ll = self.log_likelihoods(new, self.contacts[subset], self.normals[subset]).sum(1)
         best = int(np.argmax(subset_ll))
         contact_ll, miss_ll = self._all_data(new.take([best]))
