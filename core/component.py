@@ -76,4 +76,6 @@ class Component:
         self.ctx = ctx
 
     def close(self) -> None:
-        """Release devices and files. Called once, also after failures."""
+        """Release devices and files. Called once at the end of the run, also after
+        failures. A gripper releases in ``release()``, since its ``close()`` closes the
+        fingers."""

@@ -96,7 +96,12 @@ class Arm(Protocol):
 
 @runtime_checkable
 class Gripper(Protocol):
-    """A two-finger parallel gripper. Commands return at once; poll ``state()``."""
+    """A two-finger parallel gripper. Commands return at once; poll ``state()``.
+
+    ``close()`` closes the fingers (it shadows ``Component.close``), so the run never calls it
+    at its end: a gripper releases its devices in an optional ``release()``, which the run
+    calls instead.
+    """
 
     def open(self) -> None: ...
 

@@ -171,11 +171,20 @@ class RunContext:
         return errors
 
     def close_all(self) -> None:
+        """Release every built component in reverse build order (never raises). A gripper's
+        ``close()`` closes its fingers, so a gripper is released by ``release()`` if it has
+        one, and never closed."""
         for role in reversed(list(self._built)):
+            instance = self._built[role]
+            if self.skill.components[role].kind == "gripper":
+                release = getattr(instance, "release", None)
+            else:
+                release = instance.close
             try:
-                self._built[role].close()
+                if release is not None:
+                    release()
             except Exception as exc:
-                log.error("closing %s failed: %s", role, exc)
+                log.error("releasing %s failed: %s", role, exc)
         self._built.clear()
 
     def check_fresh(self, what: str, timestamp_s: float, max_age_s: float) -> None:

@@ -13,6 +13,8 @@ from emulators.robotiq import GripperSim, RobotiqPty, RobotiqSocket
 from vistac.errors import HardwareError
 from vistac.pluginmanager import Plugins
 from vistac.plugins.hardware.robotiq import modbus
+from vistac.scheduler import Scheduler
+from vistac.skill import validate_skill
 from vistac.testing import build_components, check_component
 
 
@@ -56,7 +58,7 @@ def test_activates_moves_and_detects_an_object(
     closed = settle(gripper)
     assert closed.object_detected and not closed.moving
     assert closed.width_m == pytest.approx(0.04, abs=0.001)  # stopped on the 4 cm object
-    gripper.disconnect()
+    gripper.release()
 
 
 def test_bad_crc_and_silence_give_clear_errors(
@@ -72,7 +74,7 @@ def test_bad_crc_and_silence_give_clear_errors(
     with pytest.raises(HardwareError, match="did not answer within 100 ms"):
         gripper.open()
     assert time.monotonic() - started < 1.0
-    gripper.disconnect()
+    gripper.release()
 
 
 def test_faults_are_surfaced(device: RobotiqPty, plugins: Plugins, tmp_path: Path) -> None:
@@ -80,7 +82,7 @@ def test_faults_are_surfaced(device: RobotiqPty, plugins: Plugins, tmp_path: Pat
     device.gripper.fault = 0x0E
     with pytest.raises(HardwareError, match="fault 0xe: overcurrent"):
         gripper.state()
-    gripper.disconnect()
+    gripper.release()
 
 
 def test_missing_port_is_a_clear_error(plugins: Plugins, tmp_path: Path) -> None:
@@ -95,7 +97,7 @@ def test_ur_gripper_socket_transport(plugins: Plugins, tmp_path: Path) -> None:
         gripper.close()
         closed = settle(gripper)
         assert closed.object_detected and closed.width_m == pytest.approx(0.03, abs=0.001)
-        gripper.disconnect()
+        gripper.release()
     finally:
         emulator.close()
 
@@ -103,4 +105,19 @@ def test_ur_gripper_socket_transport(plugins: Plugins, tmp_path: Path) -> None:
 def test_robotiq_conforms(device: RobotiqPty, plugins: Plugins, tmp_path: Path) -> None:
     gripper = make_gripper(plugins, tmp_path, port=device.path)
     check_component(gripper, advance=time.sleep)
-    gripper.disconnect()
+    gripper.release()
+
+
+
+def test_a_run_ends_with_the_fingers_left_alone_and_the_port_released(
+    device: RobotiqPty, plugins: Plugins, tmp_path: Path
+) -> None:
+    # Gripper.close() closes the fingers: the run's end must call release() instead
+    components = {"gripper": {"plugin": "robotiq.2f85", "with": {"port": device.path}}}
+    data = {"version": 1, "name": "t", "components": components, "tree": "stop"}
+    skill = validate_skill(data, tmp_path / "s.yaml", plugins.registry)
+    scheduler = Scheduler(skill, plugins, tmp_path / "out")
+    gripper = scheduler.ctx.component("gripper")  # kept here, so only release() shuts the port
+    assert scheduler.run().status == "success"
+    assert (device.gripper.requested, device.gripper.going) == (0, False)
+    assert not gripper.transport.serial.is_open

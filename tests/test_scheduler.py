@@ -8,11 +8,12 @@ from pathlib import Path
 import fixtures_plugin
 import numpy as np
 import pytest
-from conftest import write
+from conftest import SKILLS, write
 from vistac.errors import ConfigError
 from vistac.pluginmanager import Plugins
 from vistac.scheduler import Scheduler, belief_truth
 from vistac.skill import load_skill
+from vistac.testing import build_components
 
 
 def _run(
@@ -159,3 +160,15 @@ def test_the_truth_is_told_per_belief_link_in_its_frame() -> None:
                                   "f_j_0": 0.15})  # fmt: skip
     # without poses, entries compare by name
     assert belief_truth(belief, {"parameters": truth["parameters"]}) == truth["parameters"]
+
+
+def test_the_run_end_does_not_close_the_gripper_fingers(tmp_path: Path) -> None:
+    # a gripper's close() closes its fingers; close_all must leave them as they were
+    world = {"plugin": "sim.mujoco", "with": {"object": str(SKILLS / "objects/rect1.yaml")}}
+    ctx = build_components({"world": world, "gripper": {"plugin": "sim.gripper"}}, tmp_path)
+    ctx.component("gripper").open()
+    sim = ctx.component("world")
+    ctx.close_all()
+    fingers = sim.data.ctrl[sim.index.finger_actuators]
+    assert sim.geometry.max_finger_travel_m > 0.0
+    assert np.all(fingers == sim.geometry.max_finger_travel_m)

@@ -199,8 +199,7 @@ class Robotiq2F85(Component):
 
     def close(self) -> None:
         """Close the fingers. This is the Gripper protocol's ``close``, which shadows
-        ``Component.close``: the run closes the fingers at its end; ``disconnect`` releases
-        the port."""
+        ``Component.close``; the run never calls it at its end, it calls ``release``."""
         self._go_to(255)
 
     def stop(self) -> None:
@@ -221,5 +220,6 @@ class Robotiq2F85(Component):
             timestamp_s=time.monotonic(),
         )
 
-    def disconnect(self) -> None:
+    def release(self) -> None:
+        """Release the serial port or socket; the fingers stay where they are."""
         self.transport.close()
