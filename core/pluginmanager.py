@@ -71,6 +71,7 @@ def _register_module(plugins: Plugins, name: str, module: ModuleType) -> None:
     if plugins.manager.is_registered(module) or name in plugins.loaded:
         return
     plugins.registry.current_plugin = name
+    entries_before = plugins.registry.snapshot()
     try:
         plugins.manager.register(module, name=name)
         impl = getattr(module, "vistac_register", None)
@@ -79,6 +80,7 @@ def _register_module(plugins: Plugins, name: str, module: ModuleType) -> None:
     except Exception as exc:  # a broken plugin must not take the others down
         if plugins.manager.is_registered(module):
             plugins.manager.unregister(module)
+        plugins.registry.restore(entries_before)  # a skipped plugin registers nothing
         _fail(plugins, name, f"{type(exc).__name__}: {exc}")
         return
     plugins.loaded.append(name)

@@ -91,5 +91,13 @@ class Registry:
         self._loaded[name] = cls
         return cls
 
+    def snapshot(self) -> dict[str, ComponentInfo]:
+        """The entries as they are now, for :meth:`restore`."""
+        return dict(self._entries)
+
+    def restore(self, snapshot: dict[str, ComponentInfo]) -> None:
+        """Back to a :meth:`snapshot` (what a plugin that failed to register added goes)."""
+        self._entries = dict(snapshot)
+
     def entries(self) -> list[ComponentInfo]:
         return sorted(self._entries.values(), key=lambda e: (e.kind, e.name))

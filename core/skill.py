@@ -8,6 +8,7 @@ blackboard key a node reads is written by an earlier node.
 
 from __future__ import annotations
 
+from collections.abc import Hashable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -28,7 +29,7 @@ class SkillFile(BaseModel):
     version: Literal[1]
     name: str
     description: str = ""
-    seed: int = 0
+    seed: int = Field(0, ge=0, description="seeds every random stream of the run")
     rate_hz: float = Field(15.0, gt=0, description="control and observation rate")
     max_duration_s: float = Field(
         3600.0, gt=0, description="abort the run after this much (sim or wall) time"
@@ -66,6 +67,33 @@ class Skill:
         return self.path.parent
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a mapping key given twice (safe_load keeps the last)."""
+
+
+def _construct_unique_mapping(
+    loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False
+) -> dict[Any, Any]:
+    seen: set[Any] = set()
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":
+            continue
+        key = loader.construct_object(key_node, deep=deep)
+        if not isinstance(key, Hashable):
+            continue  # construct_mapping reports it
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key {key!r}", key_node.start_mark
+            )
+        seen.add(key)
+    return loader.construct_mapping(node, deep)
+
+
+_UniqueKeyLoader.add_constructor(
+    yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_unique_mapping
+)
+
+
 def read_yaml(path: Path) -> Any:
     """Safe-load a YAML file; a missing or malformed file is one clear ConfigError line."""
     try:
@@ -77,7 +105,7 @@ def read_yaml(path: Path) -> Any:
             [ConfigIssue("", f"cannot read file: {exc.strerror}")], str(path)
         ) from None
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_UniqueKeyLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
@@ -178,31 +206,23 @@ def load_skill(path: Path, registry: Registry, overrides: list[str] | None = Non
 
 
 def validate_skill(data: dict[str, Any], path: Path, registry: Registry) -> Skill:
-    """Validate skill data as if read from ``path`` (relative paths resolve next to it)."""
+    """Validate skill data as if read from ``path`` (relative paths resolve next to it).
+    A top-level error still lets the components and the tree be checked, so that every
+    problem is reported at once."""
     try:
-        skill_file = SkillFile.model_validate(data)
+        skill_file: SkillFile | None = SkillFile.model_validate(data)
+        issues: list[ConfigIssue] = []
     except ValidationError as exc:
-        raise ConfigError(validation_issues("", exc, SkillFile), str(path)) from None
+        skill_file, issues = None, validation_issues("", exc, SkillFile)
     context = {"skill_dir": path.parent.resolve()}
-    issues: list[ConfigIssue] = []
-    components: dict[str, ResolvedComponent] = {}
-    for role, spec in skill_file.components.items():
-        resolved, found = _resolve_component(f"components.{role}", spec, registry, context)
-        issues += found
-        if resolved is not None:
-            components[role] = resolved
-    kinds = {
-        role: registry.info(spec.plugin).kind
-        for role, spec in skill_file.components.items()
-        if spec.plugin in registry.names()
-    }
-    tree, tree_issues = parse_tree(skill_file.tree, registry, context)
+    specs = skill_file.components if skill_file else _well_formed_specs(data.get("components"))
+    components, component_issues = _resolve_components(specs, registry, context)
+    issues += component_issues
+    tree, tree_issues = _check_tree(data, specs, registry, context)
     issues += tree_issues
-    if tree is not None:
-        issues += check_tree(tree, kinds, data_flow=not tree_issues)
     if issues:
         raise ConfigError(issues, str(path))
-    assert tree is not None
+    assert skill_file is not None and tree is not None
     return Skill(
         path.resolve(),
         skill_file.name,
@@ -213,3 +233,53 @@ def validate_skill(data: dict[str, Any], path: Path, registry: Registry) -> Skil
         components,
         tree,
     )
+
+
+def _well_formed_specs(raw: Any) -> dict[str, ComponentSpec]:
+    """The component specs of a skill that failed top-level validation that are well formed
+    (the malformed ones are among the top-level issues)."""
+    if not isinstance(raw, dict):
+        return {}
+    specs = {}
+    for role, spec in raw.items():
+        try:
+            specs[str(role)] = ComponentSpec.model_validate(spec)
+        except ValidationError:
+            continue
+    return specs
+
+
+def _check_tree(
+    data: dict[str, Any],
+    specs: dict[str, ComponentSpec],
+    registry: Registry,
+    context: dict[str, Any],
+) -> tuple[TreeSpec | None, list[ConfigIssue]]:
+    """Parse the tree and check its roles and data flow; a role whose component did not
+    resolve (its error is reported already) is not checked."""
+    if "tree" not in data:
+        return None, []  # reported as missing by the top-level validation
+    tree, issues = parse_tree(data["tree"], registry, context)
+    if tree is None:
+        return None, issues
+    kinds = {
+        role: registry.info(spec.plugin).kind
+        for role, spec in specs.items()
+        if spec.plugin in registry.names()
+    }
+    roles = data["components"] if isinstance(data.get("components"), dict) else {}
+    unresolved = {str(role) for role in roles} - set(kinds)
+    return tree, issues + check_tree(tree, kinds, not issues, unresolved)
+
+
+def _resolve_components(
+    specs: dict[str, ComponentSpec], registry: Registry, context: dict[str, Any]
+) -> tuple[dict[str, ResolvedComponent], list[ConfigIssue]]:
+    components: dict[str, ResolvedComponent] = {}
+    issues: list[ConfigIssue] = []
+    for role, spec in specs.items():
+        resolved, found = _resolve_component(f"components.{role}", spec, registry, context)
+        issues += found
+        if resolved is not None:
+            components[role] = resolved
+    return components, issues

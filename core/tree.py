@@ -13,7 +13,7 @@ Behaviours are components of kind ``behaviour``: subclasses of :class:`SkillBeha
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
@@ -195,16 +195,20 @@ def _parse_behaviour(
 
 
 def check_tree(
-    tree: NodeSpec, kinds: dict[str, str], data_flow: bool = True
+    tree: NodeSpec,
+    kinds: dict[str, str],
+    data_flow: bool = True,
+    unresolved: Collection[str] = (),
 ) -> list[ConfigIssue]:
     """Check the roles each node uses and, with ``data_flow``, the blackboard data flow
-    (reads after writes; pointless on a tree whose parse left nodes out)."""
+    (reads after writes; pointless on a tree whose parse left nodes out). Roles in
+    ``unresolved`` (components whose own errors are reported) are not checked."""
     issues: list[ConfigIssue] = []
     written: set[str] = set()
     for node in tree.walk():
         if node.cls is None:
             continue
-        issues += _role_issues(node, kinds)
+        issues += _role_issues(node, kinds, unresolved)
         for key in node.cls.reads if data_flow else ():
             if key not in written:
                 issues.append(
@@ -214,11 +218,15 @@ def check_tree(
     return issues
 
 
-def _role_issues(node: NodeSpec, kinds: dict[str, str]) -> list[ConfigIssue]:
+def _role_issues(
+    node: NodeSpec, kinds: dict[str, str], unresolved: Collection[str]
+) -> list[ConfigIssue]:
     assert node.cls is not None
     issues = []
     for field_name, kind in node.cls.role_fields.items():
         role = getattr(node.config, field_name)
+        if role in unresolved:
+            continue
         if role not in kinds:
             if field_name not in node.cls.optional_roles:
                 hint = suggest(role, list(kinds))

@@ -60,6 +60,7 @@ def test_broken_plugin_is_reported_and_skipped(tmp_path: Path) -> None:
     bad_register = _broken_module(
         tmp_path,
         "from vistac import hookimpl\n@hookimpl\ndef vistac_register(registry):\n"
+        "    registry.add('arm', 'vt.arm', 'x:Y')\n"  # added before the failure: withdrawn
         "    registry.add('arm', 'sim.arm', 'x:Y')\n",  # clashes with the built-in name
         "vt_bad_register",
     )
@@ -71,6 +72,7 @@ def test_broken_plugin_is_reported_and_skipped(tmp_path: Path) -> None:
     assert "needs libfoo" in failed[bad_import]
     assert "registered twice" in failed[bad_register]
     assert plugins.registry.info("sim.arm").plugin == "sim"  # the good ones still work
+    assert "vt.arm" not in plugins.registry.names()
 
 
 def _fake_distribution(site: Path, entry: str) -> None:

@@ -61,6 +61,15 @@ def test_two_mistakes_are_both_reported_with_paths_and_exit_2(tmp_path: Path, cl
             "version: 1\nname: x\ncomponents: {}\ntree: {repeat: {do: stop, maxx: 2}}\n",
             "tree.repeat.maxx: Extra inputs are not permitted (did you mean 'max' or 'on_max'?)",
         ),
+        (  # safe_load would keep the last 'arm' silently
+            "version: 1\nname: x\ncomponents:\n  arm: {plugin: sim.arm}\n"
+            "  arm: {plugin: sim.gripper}\ntree: stop\n",
+            "malformed YAML: line 5, column 3: duplicate key 'arm'",
+        ),
+        (
+            "version: 1\nname: x\nseed: -1\ntree: stop\n",
+            "seed: Input should be greater than or equal to 0",
+        ),
     ],
 )
 def test_one_clear_line_per_problem(tmp_path: Path, cli: Cli, text: str, expected: str) -> None:
@@ -69,6 +78,40 @@ def test_one_clear_line_per_problem(tmp_path: Path, cli: Cli, text: str, expecte
     assert expected in err
     assert len(err.strip().splitlines()) == 1, err
     assert "Traceback" not in err
+
+
+def test_a_top_level_error_hides_no_other(tmp_path: Path, cli: Cli) -> None:
+    text = (
+        "version: 1\nname: x\nrate: 15\ncomponents:\n  arm: {plugin: sim.amr}\n"
+        "  gripper: {plugn: sim.gripper}\ntree: [lok]\n"
+    )
+    code, _, err = cli("validate", str(write(tmp_path / "s.yaml", text)))
+    assert code == 2
+    assert sorted(line.split(": ")[2] for line in err.strip().splitlines()) == [
+        "components.arm.plugin",  # unknown plugin 'sim.amr'
+        "components.gripper.plugin",  # Field required
+        "components.gripper.plugn",
+        "rate",
+        "tree[0]",  # unknown tree node 'lok'
+    ]
+
+
+@pytest.mark.parametrize(
+    ("spec", "error"),
+    [
+        ("{plugin: filters.duall}", "components.filter.plugin: unknown plugin 'filters.duall'"),
+        ("{plugn: filters.dual}", "components.filter.plugn: Extra inputs are not permitted"),
+    ],
+)
+def test_a_component_in_error_is_not_also_a_missing_role(
+    tmp_path: Path, cli: Cli, spec: str, error: str
+) -> None:
+    text = f"version: 1\nname: x\ncomponents:\n  filter: {spec}\ntree: goal_reached\n"
+    code, _, err = cli("validate", str(write(tmp_path / "s.yaml", text)))
+    assert code == 2
+    assert error in err
+    assert "reads 'belief', but no earlier node writes it" in err  # the tree is still checked
+    assert "role" not in err, err
 
 
 def test_missing_file(tmp_path: Path, cli: Cli) -> None:
