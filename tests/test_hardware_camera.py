@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 from conftest import SKILLS
-from vistac.errors import DataError, HardwareError
+from vistac.errors import ConfigError, DataError, HardwareError
 from vistac.pluginmanager import Plugins
 from vistac.plugins.hardware.camera.recorded import record_frames
 from vistac.testing import build_components, check_component
@@ -135,3 +135,61 @@ def test_rgbd_camera_conforms(plugins: Plugins, tmp_path: Path) -> None:
     camera = build_components(components, tmp_path, plugins=plugins).component("camera")
     check_component(camera, advance=time.sleep)
     camera.close()
+
+
+def test_rgbd_camera_refuses_a_mirrored_pose(plugins: Plugins, tmp_path: Path) -> None:
+    mirror = [[1, 0, 0, 0], [0, 1, 0, 0.45], [0, 0, -1, 0.8], [0, 0, 0, 1]]  # orthonormal, det -1
+    options = {"backend": "images", "world_from_camera": mirror}
+    with pytest.raises(ConfigError, match=r"with\.world_from_camera: Value error, "):
+        build_components(
+            {"camera": {"plugin": "camera.rgbd", "with": options}}, tmp_path, plugins=plugins
+        )
+
+
+class FakeLiveCapture:
+    """A live OpenCV capture that records the API it was opened with and the flags asked."""
+
+    opened: list[tuple[int, int]] = []
+    retrieved: list[int] = []
+
+    def __init__(self, index: int, api: int) -> None:
+        FakeLiveCapture.opened.append((index, api))
+
+    def isOpened(self) -> bool:  # noqa: N802 (OpenCV's name)
+        return True
+
+    def grab(self) -> bool:
+        return True
+
+    def retrieve(self, flag: int) -> tuple[bool, np.ndarray]:
+        """Depth (500 mm) first, then a BGR image."""
+        FakeLiveCapture.retrieved.append(flag)
+        if len(FakeLiveCapture.retrieved) == 1:
+            return True, np.full((30, 40), 500, dtype=np.uint16)
+        return True, np.zeros((30, 40, 3), dtype=np.uint8)
+
+    def release(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize(
+    ("backend", "api", "flags"),
+    [
+        ("openni2", cv2.CAP_OPENNI2, [cv2.CAP_OPENNI_DEPTH_MAP, cv2.CAP_OPENNI_BGR_IMAGE]),
+        ("realsense", cv2.CAP_INTELPERC, [cv2.CAP_INTELPERC_DEPTH_MAP, cv2.CAP_INTELPERC_IMAGE]),
+    ],
+)
+def test_rgbd_camera_retrieves_with_its_backends_flags(
+    plugins: Plugins, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, backend: str, api: int,
+    flags: list[int],
+) -> None:  # fmt: skip
+    monkeypatch.setattr(cv2, "VideoCapture", FakeLiveCapture)
+    monkeypatch.setattr(FakeLiveCapture, "opened", [])
+    monkeypatch.setattr(FakeLiveCapture, "retrieved", [])
+    options = {"backend": backend, "device": "2", "width": 40, "height": 30}
+    components = {"camera": {"plugin": "camera.rgbd", "with": options}}
+    camera = build_components(components, tmp_path, plugins=plugins).component("camera")
+    assert np.allclose(camera.capture().depth_m, 0.5)
+    assert FakeLiveCapture.opened == [(2, api)]
+    assert FakeLiveCapture.retrieved == flags
+    assert cv2.CAP_INTELPERC_IMAGE != cv2.CAP_OPENNI_BGR_IMAGE  # 3 and 5: the flag matters

@@ -36,6 +36,10 @@ _LOOKING_DOWN: Pose = (
     (0.0, 0.0, -1.0, 0.8),
     (0.0, 0.0, 0.0, 1.0),
 )
+_LIVE_FLAGS = {  # backend: OpenCV API, depth map and BGR colour retrieve flags (cv2 names)
+    "openni2": ("CAP_OPENNI2", "CAP_OPENNI_DEPTH_MAP", "CAP_OPENNI_BGR_IMAGE"),
+    "realsense": ("CAP_INTELPERC", "CAP_INTELPERC_DEPTH_MAP", "CAP_INTELPERC_IMAGE"),
+}
 
 
 class RGBDCamera(Component):
@@ -67,10 +71,13 @@ class RGBDCamera(Component):
         def _rigid(cls, value: Pose) -> Pose:
             pose = np.asarray(value)
             rotation = pose[:3, :3]
-            if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6) or not np.allclose(
-                pose[3], [0, 0, 0, 1]
-            ):
-                raise ValueError("world_from_camera must be a rigid transform (rotation + t)")
+            orthonormal = np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6)
+            proper = np.isclose(np.linalg.det(rotation), 1.0, atol=1e-6)  # -1: a mirror
+            if not (orthonormal and proper and np.allclose(pose[3], [0, 0, 0, 1])):
+                raise ValueError(
+                    "world_from_camera must be a rigid transform (a rotation with det +1, "
+                    "not a mirror, and a translation; last row 0 0 0 1)"
+                )
             return value
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
@@ -82,6 +89,7 @@ class RGBDCamera(Component):
             config.width, config.height, config.fx, config.fy, config.cx, config.cy
         )
         self.world_from_camera = np.asarray(config.world_from_camera, dtype=np.float64)
+        self.depth_flag = self.colour_flag = 0
         self.capture_device = self._open()
 
     def _open(self) -> Any:
@@ -89,7 +97,9 @@ class RGBDCamera(Component):
         if config.backend == "images":
             device = cv2.VideoCapture(config.device, cv2.CAP_IMAGES)
         else:
-            api = cv2.CAP_OPENNI2 if config.backend == "openni2" else cv2.CAP_INTELPERC
+            api, self.depth_flag, self.colour_flag = (
+                getattr(cv2, name) for name in _LIVE_FLAGS[config.backend]
+            )
             device = cv2.VideoCapture(int(config.device), api)
         if not device.isOpened():
             raise HardwareError(
@@ -103,7 +113,7 @@ class RGBDCamera(Component):
 
     def _grab(self) -> tuple[FloatArray, np.ndarray | None]:
         """Depth in sensor units [H, W] and BGR colour or None."""
-        cv2, device = self.cv2, self.capture_device
+        device = self.capture_device
         if self.config.backend == "images":
             ok, image = device.read()
             if not ok:
@@ -111,8 +121,8 @@ class RGBDCamera(Component):
             return np.asarray(image[..., 0] if image.ndim == 3 else image, np.float64), None
         if not device.grab():
             raise HardwareError("camera.rgbd: grab failed (camera unplugged?)")
-        depth_ok, depth = device.retrieve(flag=cv2.CAP_OPENNI_DEPTH_MAP)
-        colour_ok, colour = device.retrieve(flag=cv2.CAP_OPENNI_BGR_IMAGE)
+        depth_ok, depth = device.retrieve(flag=self.depth_flag)
+        colour_ok, colour = device.retrieve(flag=self.colour_flag)
         if not depth_ok:
             raise HardwareError("camera.rgbd: no depth map in the grabbed frame")
         return np.asarray(depth, np.float64), colour if colour_ok else None
