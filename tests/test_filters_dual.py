@@ -676,6 +676,32 @@ def test_nan_raises_a_data_error_naming_the_entry() -> None:
         )
 
 
+class TableAndNan(LinearObservation):
+    """100 entries the same for every point (the table's pixels), then (x, y, theta, fx, fy)
+    with a NaN at entry 101 (y) of point 3."""
+
+    def expected(self, states: Tensor, force_n: Tensor) -> Tensor:
+        table = torch.full((*states.shape[:-1], 100), 0.5, dtype=DTYPE)
+        expected = torch.cat([table, super().expected(states, force_n)], -1)
+        expected[..., 3, 101] = float("nan")
+        return expected
+
+    def noise_var(self, observation: Tensor) -> Tensor:
+        return torch.full(observation.shape, 1e-3, dtype=DTYPE)
+
+
+@pytest.mark.parametrize("marginal", [True, False])
+def test_a_bad_entry_is_named_by_its_place_in_the_whole_observation(marginal: bool) -> None:
+    """Only the entries where the points differ are compared point by point; the error still
+    names the entry's index in the full observation."""
+    observation = torch.cat([torch.full((100,), 0.5, dtype=DTYPE), as_tensor([0, 0, 0, 1, 1])])
+    dual = DualFilter(LAYOUT, LinearProcess(), TableAndNan(), 10,
+                      marginal_parameter_likelihood=marginal)  # fmt: skip
+    generator = torch.Generator().manual_seed(10)
+    with pytest.raises(DataError, match=r"expected observation\[101\] = nan at leading index"):
+        dual.step(prior_belief(), make_inputs(), DT_S, observation, generator)
+
+
 class ExplodingObservation(LinearObservation):
     """Expected observations so spread that the unscented update is numerically singular."""
 
@@ -766,8 +792,24 @@ def test_tempering_keeps_the_effective_sample_size() -> None:
 
 
 def test_pose_floor_widens_the_unscented_spread_only() -> None:
-    dual = DualFilter(LAYOUT, LinearProcess(), LinearObservation(), 10)
+    """A pose std below the floor is raised to it before the unscented update: with a linear
+    observation of (x, y, theta) the update is the Kalman one from the floored variance, and
+    the entries without a floor (the twist) keep theirs."""
+    floor = (0.01, 0.02, 0.1, 0.0, 0.0, 0.0)
+    dual = DualFilter(LAYOUT, LinearProcess(), LinearObservation(), 10, pose_std_floor=floor)
     assert dual.pose_var_floor is not None and dual.pose_var_floor.shape == (LAYOUT.n_pose,)
+    variance = as_tensor([1e-8] * LAYOUT.n_pose + list(PRIOR_VAR[6:]))
+    belief = Belief(as_tensor(PRIOR_MEAN), torch.diag(variance))
+    observation = as_tensor([0.002, -0.001, 0.01, 0.0, 0.0])
+    noise_var = LinearObservation().noise_var(observation)
+    mean, cov, _ = dual._update_pose(
+        belief, belief.mean[6:], torch.zeros(2, dtype=DTYPE), observation, noise_var
+    )
+    floored = torch.tensor(floor[:3], dtype=DTYPE).square()
+    gain = floored / (floored + POSITION_VAR)
+    torch.testing.assert_close(cov.diagonal()[:3], gain * POSITION_VAR)
+    torch.testing.assert_close(mean[:3], gain * observation[:3])
+    torch.testing.assert_close(cov.diagonal()[3:], variance[3:6])
     with pytest.raises(ValueError, match="pose_std_floor"):
         DualFilter(LAYOUT, LinearProcess(), LinearObservation(), pose_std_floor=(1.0,))
     with pytest.raises(ValueError, match="min_ess_fraction"):

@@ -1073,6 +1073,7 @@ class DualFilter:
         (``varying_columns``) are compared point by point; the others add the same residual
         to every point, which only ``last_log_likelihood`` needs (one [..., k] product)."""
         modality_weights = modality_inverse_var(noise_var, n_tactile)
+        full_expected = expected  # a bad entry is named by its place in the whole observation
         columns = varying_columns(expected.detach(), n_tactile)
         same = torch.ones(expected.shape[-1], dtype=torch.bool, device=expected.device)
         same[columns] = False
@@ -1097,7 +1098,8 @@ class DualFilter:
         else:
             sums = weighted_squared_sums(squared, noise_var.reciprocal().unsqueeze(-2))
             log_likelihood = -0.5 * sums[..., 0]
-        require_finite_summary(log_likelihood, squared, "expected observation")
+        summary = log_likelihood.sum() + self.last_log_likelihood.sum()
+        require_finite_summary(summary, full_expected, "expected observation")
         return log_likelihood
 
     def _widest_pose_entry(self, mean: Tensor, cov: Tensor) -> str:
