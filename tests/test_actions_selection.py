@@ -28,6 +28,7 @@ from vistac.plugins.actions.info_gain import (
 )
 from vistac.plugins.actions.selectors import UniformSelector
 from vistac.plugins.filters.dual import Belief
+from vistac.plugins.filters.state import Prediction
 from vistac.plugins.shape.superquadric import inside_outside, to_superquadric_frame
 from vistac.protocols import Scene
 from vistac.testing import build_components
@@ -498,6 +499,28 @@ def test_predictions_do_not_depend_on_the_other_candidates(tmp_path: Path) -> No
     start_mean, _ = filter_.predict_beliefs([CENTRAL_X], 0.0, 15.0)[0]
     assert torch.equal(start_mean, filter_.belief.mean)  # at rest: zero twist already
     assert float(alone[0][0]) > float(start_mean[0]) + 0.01  # pushed along +x
+
+
+class _Runaway:
+    """A process model whose velocity doubles every step."""
+
+    n_links = None
+
+    def predict(self, states: torch.Tensor, inputs: Any, dt_s: float) -> Prediction:
+        pose = states[..., :6].clone()
+        pose[..., 3] = 2.0 * pose[..., 3] + 1.0
+        pose[..., 0] = pose[..., 0] + dt_s * pose[..., 3]
+        force = torch.zeros(*states.shape[:-1], 2, dtype=states.dtype)
+        return Prediction(pose, force, torch.full((6,), 1e-8, dtype=states.dtype))
+
+
+def test_the_look_ahead_keeps_the_filters_twist_bound(tmp_path: Path) -> None:
+    """The look-ahead is the filter's own prediction: a runaway model's twist is capped at
+    max_link_speed_mps there too."""
+    _, filter_ = _info_gain(tmp_path)
+    filter_.model = _Runaway()
+    mean, _ = filter_.predict_beliefs([CENTRAL_X], 1.0, 15.0)[0]
+    assert float(mean[3]) == pytest.approx(filter_.config.max_link_speed_mps, rel=1e-6)
 
 
 def test_info_gain_needs_a_filter_with_predictions(tmp_path: Path) -> None:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import run_vistac
+from pydantic import ValidationError
 from vistac.cli import build_parser, main
 from vistac.errors import ConfigError
 from vistac.objects import load_object
@@ -346,6 +347,20 @@ def test_too_few_sigma_points_for_the_state_are_warned_of(
                  "filter": {"plugin": "filters.dual", "with": {"sigma_points": count}}}  # fmt: skip
         build_components(specs, tmp_path).component("filter").initialise(scene)
         assert ("cannot be whitened" in caplog.text) is warned, count
+
+
+@pytest.mark.parametrize(
+    ("options", "where"),
+    [
+        ({"pose_std_floor": [-0.01, 0, 0, 0, 0, 0]}, "pose_std_floor.0"),
+        ({"prior": {"mass_kg": [0.9, -0.4]}}, "prior.mass_kg.1"),
+        ({"prior": {"com_m": [0.0, 0.0]}}, "prior.com_m.1"),
+    ],
+)
+def test_a_negative_std_is_refused_when_the_skill_is_read(options: dict, where: str) -> None:
+    """Checked with the skill, before anything moves (the filter is built after a push)."""
+    with pytest.raises(ValidationError, match=where.replace(".", r"\.")):
+        DualFilterComponent.Config.model_validate(options)
 
 
 def test_filter_needs_a_process_model(tmp_path: Path) -> None:

@@ -27,7 +27,7 @@ from vistac.objects import polygon_centroid_covariance
 from vistac.plugins.actions.affordances import link_outline
 from vistac.plugins.actions.executor import CartesianExecutor
 from vistac.plugins.filters.data import relative_poses
-from vistac.plugins.filters.dual import Belief, DualFilter, ObservationModel
+from vistac.plugins.filters.dual import Belief, DualFilter
 from vistac.plugins.filters.mirror import mirror_averaged
 from vistac.plugins.filters.models import load_checkpoint
 from vistac.plugins.filters.observation import (
@@ -43,6 +43,12 @@ from vistac.types import Action, FloatArray, GaussianBelief, Pull, ShapeEstimate
 
 log = logging.getLogger(__name__)
 
+PoseStds = tuple[
+    NonNegativeFloat, NonNegativeFloat, NonNegativeFloat,
+    NonNegativeFloat, NonNegativeFloat, NonNegativeFloat,
+]  # fmt: skip
+"""(x, y, theta, vx, vy, omega) stds, m, rad, m/s and rad/s."""
+
 
 class Prior(BaseModel):
     """Initial mean and standard deviation of each parameter family. The defaults are the
@@ -53,9 +59,9 @@ class Prior(BaseModel):
     uncertainty dishonest."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    mass_kg: tuple[float, float] = (0.9, 0.4)
-    friction: tuple[float, float] = (0.3, 0.12)
-    com_m: tuple[float, float] = Field(
+    mass_kg: tuple[float, PositiveFloat] = (0.9, 0.4)
+    friction: tuple[float, PositiveFloat] = (0.3, 0.12)
+    com_m: tuple[float, PositiveFloat] = Field(
         default=(0.0, 0.028), description="CoM mean and std per axis in each link's frame, "
         "unless com_in_shape"
     )
@@ -64,7 +70,7 @@ class Prior(BaseModel):
         "superquadric's mid-height outline): mean the outline's area centroid, covariance "
         "its area moments about it, in place of com_m (measured no better on the test split)",
     )
-    joint_friction_nm: tuple[float, float] = (0.25, 0.15)
+    joint_friction_nm: tuple[float, PositiveFloat] = (0.25, 0.15)
     position_m: float = Field(default=0.005, gt=0, description="std of the initial link positions")
     angle_rad: float = Field(default=0.05, gt=0, description="std of the initial link angles")
     velocity_mps: float = Field(
@@ -164,7 +170,22 @@ def _summary_belief(summary: dict[str, Any], path: Path) -> dict[str, dict[str, 
             f"prior_from: {path} has no belief; use the summary.json of a run that "
             "updated a belief (explore_push or explore_pull)"
         )
-    return belief
+    return {str(name): _mean_std(entry, f"{path}: belief.{name}") for name, entry in belief.items()}
+
+
+def _mean_std(entry: Any, where: str) -> dict[str, float]:
+    """{"mean", "std"} of one ``prior_from`` entry as floats; ConfigError unless both are
+    finite numbers and the std is not negative."""
+    try:
+        mean, std = float(entry["mean"]), float(entry["std"])
+    except (KeyError, TypeError, ValueError):
+        mean, std = float("nan"), float("nan")
+    if not (np.isfinite(mean) and np.isfinite(std) and std >= 0):
+        raise ConfigError(
+            f"prior_from: {where} is {entry!r}; give each parameter as "
+            '{"mean": <number>, "std": <number >= 0>}, e.g. "m_0": {"mean": 0.8, "std": 0.02}'
+        )
+    return {"mean": mean, "std": std}
 
 
 def _summary_correlation(summary: dict[str, Any], path: Path) -> Correlation | None:
@@ -317,7 +338,7 @@ class DualFilterComponent(Component):
         min_ess_fraction: float = Field(
             0.8, gt=0, le=1, description="temper the parameter weights to keep this ESS share"
         )
-        pose_std_floor: tuple[float, float, float, float, float, float] = Field(
+        pose_std_floor: PoseStds = Field(
             (0.006, 0.006, 0.06, 0.0, 0.0, 0.0),
             description="least predicted pose std (m, rad) before the visual update: about "
             "one pixel, so the unscented points render differently",
@@ -569,10 +590,11 @@ class DualFilterComponent(Component):
         batch = len(actions)
         poses = self.layout.link_pose(start.mean).numpy()[None, :, :3].repeat(batch, 0)
         motion = self._action_motion(actions, poses)
-        # Prediction only: the observation model is never called.
-        filter_ = DualFilter(
-            self.layout, _LookAheadModel(self.model), cast(ObservationModel, None),
-            sigma_points or self.config.sigma_points, push_load_only=self.config.push_load_only,
+        # The filter's own prediction (twist bound, push load); the observation model is never
+        # called.
+        filter_ = self.config.dual_filter(
+            self.layout, _LookAheadModel(self.model),
+            cast(ProjectionObservationModel, None), None, sigma_points,
         )  # fmt: skip
         generator = torch.Generator().manual_seed(self.ctx.seed)
         mean = start.mean.expand(batch, -1)
