@@ -31,6 +31,7 @@ from vistac.plugins.filters.evaluate import read_skill
 from vistac.plugins.filters.nets import RATE_SCALE_RADPS, SPEED_SCALE_MPS
 from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput, StateLayout
 from vistac.plugins.filters.train import (
+    TrainConfig,
     disturb_twist,
     load_preset,
     one_step_force_loss,
@@ -373,3 +374,32 @@ def test_fig10_curves_per_selection_and_object_type(tmp_path: Path) -> None:
     }
     active.plot_rounds(reports, tmp_path / "fig10.png")
     assert (tmp_path / "fig10.png").stat().st_size > 0
+
+
+def test_data_without_one_of_the_interactions_is_refused_before_any_training(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Pushes only, and a preset that trains pushes and pulls: refused before the pushes are
+    trained (which took minutes and left their checkpoints without a train.json)."""
+    from vistac.plugins.filters import train as training
+
+    data = {"train": [_trajectory(c) for c in "abcd"], "val": [_trajectory("e")]}
+    monkeypatch.setattr(training, "recorded_data", lambda dirs: data)
+    out = tmp_path / "out"
+    config = TrainConfig(interactions=["push", "pull"], hidden=8, epochs=1)
+    with pytest.raises(DataError, match=r"no pull trajectories .* interactions: \(without pull\)"):
+        training.train(SKILLS / "collect_pushes.yaml", out, config, [tmp_path])
+    assert not out.exists()
+
+
+def test_a_feed_forward_without_validation_of_its_link_count_is_refused() -> None:
+    """Training pushes of one- and two-link objects, validation of one-link objects only:
+    the two-link FF could not be validated and was saved with its initial weights."""
+    from test_training_mirror import _two_link_trajectory
+    from vistac.plugins.filters.train import train_interaction
+
+    data = {"train": [_trajectory(c) for c in "abcd"] + [_two_link_trajectory("articulated")],
+            "val": [_trajectory("e")]}  # fmt: skip
+    config = TrainConfig(models=["gnn", "ff"], hidden=8, epochs=1)
+    with pytest.raises(DataError, match=r"no push trajectories of \[2\] links"):
+        train_interaction("push", data, config, Path("unused"))

@@ -392,6 +392,17 @@ def test_corrupted_checkpoint_is_a_data_error(damage: str, tmp_path: Path) -> No
         build(GNNProcessModel, tmp_path, checkpoint="broken.pt")
 
 
+@pytest.mark.parametrize(
+    "sidecar",
+    ["", "[1]", '{"model": "filters.gnn"}', '{"model": "filters.gnn", "architecture": [32]}'],
+)
+def test_a_damaged_sidecar_is_a_data_error(sidecar: str, tmp_path: Path) -> None:
+    build(GNNProcessModel, tmp_path).save_checkpoint(tmp_path / "model.pt")
+    sidecar_path(tmp_path / "model.pt").write_text(sidecar)
+    with pytest.raises(DataError, match=r"model\.pt\.json: unreadable checkpoint sidecar"):
+        build(GNNProcessModel, tmp_path, checkpoint="model.pt")
+
+
 def test_checkpoint_of_another_architecture_is_a_data_error(tmp_path: Path) -> None:
     build(GNNProcessModel, tmp_path, hidden=32).save_checkpoint(tmp_path / "small.pt")
     with pytest.raises(DataError, match=r"small\.pt.*hidden: saved 32, configured 64"):

@@ -74,6 +74,8 @@ def _check_sidecar(path: Path, plugin: str, architecture: dict[str, int]) -> Non
     try:
         saved = json.loads(sidecar.read_text(encoding="utf-8"))
         saved_plugin, saved_architecture = saved["model"], saved["architecture"]
+        if not isinstance(saved_architecture, dict):
+            raise TypeError(f"architecture is {saved_architecture!r}, not an object")
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise DataError(f"{sidecar}: unreadable checkpoint sidecar ({error})") from None
     if saved_plugin != plugin:

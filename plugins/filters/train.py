@@ -590,8 +590,7 @@ def train_interaction(
         windows["missed"] = stack_equal_length(
             missed_pushes(data["train"]), window_steps(data["train"])
         )
-    if not windows["train"] or not windows["val"]:
-        raise DataError(f"no {kind} trajectories in the train or validation data")
+    _check_windows(kind, windows, config)
     rng = np.random.default_rng(config.seed)
     report: dict[str, Any] = {"windows": {k: len(v) for k, v in windows.items()}}
     noise_net = ObsNoiseNet().to(DTYPE)
@@ -620,6 +619,29 @@ def train_interaction(
         )
     _save_noise(noise_net, noise_path)
     return report
+
+
+def _check_windows(
+    kind: Interaction, windows: dict[str, list[Trajectory]], config: TrainConfig
+) -> None:
+    """DataError unless there are train and validation windows of ``kind`` and, for the
+    feed-forward models (one per link count), validation windows of each training link count
+    (without them the FF would be saved untrained: no epoch could beat its start)."""
+    if not windows["train"] or not windows["val"]:
+        raise DataError(
+            f"no {kind} trajectories in the train or validation data; collect some, or train "
+            f"only the others with a preset file's interactions: (without {kind})"
+        )
+    if "ff" not in config.models:
+        return
+    val_counts = {w.n_links for w in windows["val"]}
+    missing = sorted({w.n_links for w in windows["train"]} - val_counts)
+    if missing:
+        raise DataError(
+            f"the validation data has no {kind} trajectories of {missing} links, which the "
+            f"feed-forward model of each link count needs; add validation objects with that "
+            "many links (a preset's shipped_val or val split) or leave ff out of models"
+        )
 
 
 def window_steps(trajectories: list[Trajectory]) -> int:
@@ -784,13 +806,17 @@ def train(
     start_s = time.perf_counter()
     torch.manual_seed(config.seed)
     data = recorded_data(data_dirs) if data_dirs else None  # bad --data: no out_dir made
-    out_dir.mkdir(parents=True, exist_ok=True)
     if data is None:
+        out_dir.mkdir(parents=True, exist_ok=True)
         files = object_files(config, skill.parent, out_dir)
         data = {
             split: load_trajectories(collect(skill, paths, out_dir / "data" / split, config))
             for split, paths in files.items()
         }
+    for kind in config.interactions:  # every interaction's data checked before any training
+        _check_windows(kind, {split: [t for t in trajs if t.kind == kind]
+                              for split, trajs in data.items()}, config)  # fmt: skip
+    out_dir.mkdir(parents=True, exist_ok=True)
     collect_s = time.perf_counter() - start_s
     report: dict[str, Any] = {
         "preset": config.model_dump(mode="json"),
