@@ -16,7 +16,7 @@ from typing import Any
 
 from vistac import __version__
 from vistac.allocator import keep_freed_memory
-from vistac.errors import ConfigError, VistacError
+from vistac.errors import ConfigError, PluginError, VistacError
 from vistac.pluginmanager import Plugins, load_plugins
 
 log = logging.getLogger("vistac")
@@ -50,7 +50,7 @@ def _plugins(args: argparse.Namespace) -> Plugins:
     plugins = load_plugins(args.plugin)
     missing = [f for f in plugins.failures if f.name in args.plugin]
     if missing:
-        raise VistacError("; ".join(f"plugin {f.name}: {f.error}" for f in missing))
+        raise PluginError("; ".join(f"plugin {f.name}: {f.error}" for f in missing))
     return plugins
 
 
@@ -314,9 +314,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         parse_variants,
     )
     from vistac.plugins.touch.campaign import is_touch_skill
+    from vistac.recording import refuse_file_as_folder
 
     if not args.skill.is_file():
         raise ConfigError(f"{args.skill}: no such skill file")
+    refuse_file_as_folder(args.out)
     if is_touch_skill(args.skill):
         return _eval_touch(args)
     if is_goal_skill(args.skill):
@@ -377,6 +379,17 @@ def _print_campaign(report: dict[str, Any], out: Path, variant: str, what: str) 
           f"tables.md in {out}")  # fmt: skip
 
 
+def _seed(text: str) -> int:
+    """A ``--seed`` value: an integer, 0 or more (argparse names the option when not)."""
+    try:
+        seed = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+    if seed < 0:
+        raise argparse.ArgumentTypeError(f"{seed} is negative; give 0 or more")
+    return seed
+
+
 def _add_skill_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--set",
@@ -408,7 +421,7 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run a skill")
     run.add_argument("skill", type=Path)
     run.add_argument("--out", type=Path, required=True, help="output folder")
-    run.add_argument("--seed", type=int, default=None, help="override the skill's seed")
+    run.add_argument("--seed", type=_seed, default=None, help="override the skill's seed")
     run.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out")
     _add_skill_options(run)
     run.set_defaults(func=cmd_run)
@@ -499,7 +512,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--max-interactions", type=int, default=None, help="cap on interactions per run"
     )
-    evaluate.add_argument("--seed", type=int, default=None, help="override the skill's seed")
+    evaluate.add_argument("--seed", type=_seed, default=None, help="override the skill's seed")
     evaluate.add_argument(
         "--paired", action="store_true",
         help="variants with the first variant's action selector (a-ff, a-analytical after "
@@ -527,7 +540,7 @@ def build_parser() -> argparse.ArgumentParser:
     objects = sub.add_parser("objects", help="object configurations")
     objects_sub = objects.add_subparsers(dest="objects_command", required=True)
     generate = objects_sub.add_parser("generate", help="write the 120 configurations and split")
-    generate.add_argument("--seed", type=int, default=0)
+    generate.add_argument("--seed", type=_seed, default=0)
     generate.add_argument("--out", type=Path, required=True)
     generate.set_defaults(func=cmd_objects_generate)
     return parser

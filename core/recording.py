@@ -46,8 +46,19 @@ def write_json(path: Path, data: Any) -> None:
     tmp.replace(path)
 
 
+def refuse_file_as_folder(out_dir: Path) -> None:
+    """A ConfigError (exit 2) naming ``--out`` when ``out_dir``, or the nearest existing
+    folder above it, is a file: no output folder can be made there."""
+    for path in (out_dir, *out_dir.parents):
+        if path.exists():
+            if not path.is_dir():
+                raise ConfigError([ConfigIssue("--out", f"{path} is a file; give a folder")])
+            return
+
+
 def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
     """Create ``out_dir``; refuse to mix with an earlier run unless ``overwrite``."""
+    refuse_file_as_folder(out_dir)
     if (out_dir / "run.json").exists():
         if not overwrite:
             raise ConfigError(

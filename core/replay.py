@@ -52,6 +52,7 @@ def replay(
     overwrite: bool = False,
 ) -> dict[str, Any]:
     """Replay ``run_dir``'s belief updates into ``out_dir``; returns the new summary."""
+    _refuse_overlap(run_dir, out_dir)
     source, summary = _read_json(run_dir, "run.json"), _read_json(run_dir, "summary.json")
     if not isinstance(source.get("config"), dict) or "skill_path" not in source:
         raise _bad_run(f"{run_dir / 'run.json'}: no skill config or skill_path in it")
@@ -113,6 +114,16 @@ def _summary(source: dict[str, Any], results: dict[str, Any], wall_s: float) -> 
     }
     add_belief_errors(summary)
     return summary
+
+
+def _refuse_overlap(run_dir: Path, out_dir: Path) -> None:
+    """A ConfigError (exit 2) when ``out_dir`` is ``run_dir`` or one holds the other: writing
+    the replay there would delete or mix with the recording it replays."""
+    run, out = run_dir.resolve(), out_dir.resolve()
+    if out.is_relative_to(run) or run.is_relative_to(out):
+        raise ConfigError([ConfigIssue("--out", f"{out_dir} overlaps the replayed run {run_dir} "
+                                       "(the same folder or one inside the other); choose a "
+                                       "folder outside it")])  # fmt: skip
 
 
 def _bad_run(message: str) -> ConfigError:

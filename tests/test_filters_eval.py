@@ -12,13 +12,16 @@ import pytest
 import yaml
 from vistac.cli import main
 from vistac.errors import DataError
-from vistac.objects import generate_configurations, object_from_dict
+from vistac.objects import generate_configurations, load_object, object_from_dict
 from vistac.plugins.filters.component import Prior
 from vistac.plugins.filters.evaluate import (
+    VARIANTS,
     EvalOptions,
+    RunPlan,
     calibration_table,
     chosen_variants,
     difference_table,
+    execute,
     first_poses,
     learned_model_options,
     log_score,
@@ -306,8 +309,13 @@ def test_eval_names_a_bad_prior(tmp_path: Path, capsys: pytest.CaptureFixture[st
          "a-gnn, u-gnn, r-gnn, a-ff, a-analytical, gnn-fixed"),
         (["--variants", "a-ff", "--models", "gnn"], "no variant left to evaluate"),
         (["--variants", ","], "--variants: unknown variant(s) (none)"),
+        (["--max-objects", "0"], "--max-objects: 0 is not a count; give 1 or more"),
+        (["--max-objects", "-1"], "--max-objects: -1 is not a count"),
+        (["--max-interactions", "0"], "--max-interactions: 0 is not a count"),
+        (["--max-interactions", "-1"], "--max-interactions: -1 is not a count"),
     ],
-    ids=["unknown-model", "missing-object", "unknown-variant", "no-variant-left", "empty"],
+    ids=["unknown-model", "missing-object", "unknown-variant", "no-variant-left", "empty",
+         "no-objects", "objects-negative", "no-interactions", "interactions-negative"],
 )  # fmt: skip
 def test_eval_bad_input_is_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str
@@ -318,6 +326,84 @@ def test_eval_bad_input_is_exit_2(
     assert code == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "runs").exists()
+
+
+def test_eval_out_naming_a_file_is_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "afile"
+    out.write_text("not a folder")
+    for where in (out, out / "eval"):
+        code = main(["-q", "eval", str(ROOT / "skills/explore_push.yaml"), "--out", str(where),
+                     "--objects", str(ROOT / "skills/objects/rect2.yaml")])  # fmt: skip
+        assert code == 2
+        assert f"--out: {out} is a file; give a folder" in capsys.readouterr().err
+    assert out.read_text() == "not a folder"
+
+
+def test_ctrl_c_stops_the_whole_evaluation(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The Scheduler turns Ctrl-C into its run's exit 130: eval starts no further run, exits
+    130, and stamps no run as finished (before, every run was started and eval exited 1)."""
+    from vistac.scheduler import Scheduler
+
+    started: list[Path] = []
+
+    def interrupted(self: Scheduler) -> str:
+        started.append(self.recorder.out_dir)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Scheduler, "_tick_until_done", interrupted)
+    out = tmp_path / "eval"
+    code = main([
+        "-q", "eval", str(ROOT / "skills/explore_push.yaml"), "--out", str(out),
+        "--objects", str(ROOT / "skills/objects/rect2.yaml"),
+        str(ROOT / "skills/objects/rect1.yaml"), "--variants", "a-analytical,r-gnn", *FAST,
+    ])  # fmt: skip
+    assert code == 130
+    assert "interrupted" in capsys.readouterr().err
+    assert len(started) == 1
+    assert not list(out.rglob("eval_args.json")) and not (out / "eval.json").exists()
+
+
+def _fake_run(monkeypatch: pytest.MonkeyPatch, code: int) -> list[list[str]]:
+    """``vistac run`` replaced by one that writes a summary and exits ``code``; its calls."""
+    import vistac.cli
+
+    calls: list[list[str]] = []
+
+    def run(args: list[str]) -> int:
+        run_dir = Path(args[args.index("--out") + 1])
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "summary.json").write_text(json.dumps({"exit_code": code}))
+        calls.append(args)
+        return code
+
+    monkeypatch.setattr(vistac.cli, "main", run)
+    return calls
+
+
+def test_a_failed_rerun_is_not_reused_as_the_finished_run_before_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run that finished with seed 0, rerun with seed 1 and failed, then asked for with
+    seed 0 again: it runs again (before, the old stamp passed the failed run for it)."""
+    rect2 = ROOT / "skills/objects/rect2.yaml"
+    plan = RunPlan(rect2, load_object(rect2), VARIANTS[0], overrides=["a=1"])
+    options = [EvalOptions(skill=ROOT / "skills/explore_push.yaml", out=tmp_path, seed=seed)
+               for seed in (0, 1)]  # fmt: skip
+    calls = _fake_run(monkeypatch, 0)
+    assert execute(plan, options[0])["status"] == "ok"
+    _fake_run(monkeypatch, 1)
+    assert execute(plan, options[1])["status"] == "failed"
+    assert not (run_dir_of(tmp_path, plan) / "eval_args.json").exists()
+    calls = _fake_run(monkeypatch, 0)
+    assert execute(plan, options[0])["status"] == "ok" and len(calls) == 1
+    _fake_run(monkeypatch, 130)
+    with pytest.raises(KeyboardInterrupt):
+        execute(plan, options[1])
+    assert not (run_dir_of(tmp_path, plan) / "eval_args.json").exists()
 
 
 def test_eval_checks_each_variants_settings_before_running(
@@ -382,16 +468,14 @@ def test_plan_runs_sets_model_and_selector_per_variant(tmp_path: Path) -> None:
     uniform = 'components.planner={"plugin": "actions.uniform"}'
     random = 'components.planner={"plugin": "actions.random"}'
     analytical = 'components.model={"plugin": "filters.analytical"}'
-    gnn, ff, analytical = (  # the user's model option refines each variant's model
-        [model, "components.model.with.mirror_average=true"] for model in (gnn, ff, analytical)
-    )
+    refined = "components.model.with.mirror_average=true"  # refines each variant's model
     expected = [
-        [*common, *gnn, info_gain],
-        [*common, *gnn, uniform],
-        [*common, *gnn, random],
-        [*common, *ff, info_gain],
-        [*common, *analytical, info_gain],
-        [*common, *gnn, random, "components.filter.with.estimate_parameters=false"],
+        [*common, gnn, refined, info_gain],
+        [*common, gnn, refined, uniform],
+        [*common, gnn, refined, random],
+        [*common, ff, refined, info_gain],
+        [*common, analytical, refined, info_gain],
+        [*common, gnn, refined, random, "components.filter.with.estimate_parameters=false"],
     ]
     assert [p.overrides for p in plans[:6]] == expected
     assert all(p.skipped is None for p in plans[:6])
@@ -399,6 +483,24 @@ def test_plan_runs_sets_model_and_selector_per_variant(tmp_path: Path) -> None:
     assert set(skipped) == {"a-ff"}
     assert "no FF checkpoint for 2 link(s)" in skipped["a-ff"]
     assert run_dir_of(tmp_path, plans[1]) == tmp_path / "runs/rect2/u-gnn"
+
+
+def test_the_users_planner_options_and_rate_refine_each_variants_planner(
+    tmp_path: Path,
+) -> None:
+    """``--set components.planner.with.*`` comes after the variant's planner (before, the
+    variant's whole planner replaced it) and ``--set rate_hz`` sets info_gain's rate."""
+    options = EvalOptions(
+        skill=ROOT / "skills/explore_push.yaml", out=tmp_path, variants=("a-gnn", "r-gnn"),
+        checkpoints=_checkpoints(tmp_path / "ckpt"),
+        overrides=("components.planner.with.horizon_s=1.0", "rate_hz=20"),
+    )  # fmt: skip
+    plans = plan_runs(options, [ROOT / "skills/objects/rect2.yaml"], "push")
+    for plan in plans:
+        assert plan.overrides[-1] == "components.planner.with.horizon_s=1.0"
+        assert plan.overrides[-2].startswith("components.planner=")
+    info_gain = json.loads(plans[0].overrides[-2].split("=", 1)[1])
+    assert info_gain["with"]["rate_hz"] == 20.0
 
 
 def test_the_skills_own_learned_model_options_go_to_the_gnn_and_ff_variants(

@@ -12,6 +12,7 @@ import pytest
 import yaml
 from conftest import SKILLS, run_vistac
 from vistac.behaviours.look import shape_from_links, shape_links
+from vistac.cli import main
 from vistac.errors import DataError
 from vistac.protocols import Episode, StepObservation
 from vistac.recording import RunRecorder
@@ -192,3 +193,26 @@ def test_replay_of_a_real_robot_run_builds_no_hardware(recorded: Path, tmp_path:
     assert replay["config"]["components"]["arm"]["plugin"] == "ur_rtde.arm"
     prior = json.loads((out / "summary.json").read_text())["prior"]
     assert _belief(out)["m_0"]["std"] < prior["m_0"]["std"]  # the pushes informed it
+
+
+@pytest.mark.parametrize("where", ["", "sub", ".."], ids=["same", "inside", "around"])
+def test_replay_refuses_an_out_folder_overlapping_the_run(
+    recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], where: str
+) -> None:
+    """``--out RUN --overwrite`` deleted the recording it was about to replay."""
+    run = tmp_path / "run"
+    shutil.copytree(recorded, run)
+    out = run / where if where != ".." else tmp_path
+    assert main(["-q", "replay", str(run), "--out", str(out), "--overwrite"]) == 2
+    assert "overlaps the replayed run" in capsys.readouterr().err
+    assert sorted(p.name for p in run.iterdir()) == sorted(p.name for p in recorded.iterdir())
+    assert not (run / "sub").exists()
+
+
+def test_replay_out_naming_a_file_is_exit_2(
+    recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "afile"
+    out.write_text("not a folder")
+    assert main(["-q", "replay", str(recorded), "--out", str(out)]) == 2
+    assert f"--out: {out} is a file; give a folder" in capsys.readouterr().err

@@ -80,3 +80,33 @@ def test_bad_options_are_clear_errors(
                  "--out", str(tmp_path), *extra])  # fmt: skip
     assert code == 2
     assert message in capsys.readouterr().err
+
+
+def test_ctrl_c_stops_the_touch_evaluation(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Ctrl-C in a trial's run (exit 130 from the Scheduler) ends the eval with 130, no other
+    trial started; before, every trial ran and the eval exited 0."""
+    from vistac.scheduler import Scheduler
+
+    started: list[Path] = []
+
+    def interrupted(self: Scheduler) -> str:
+        started.append(self.recorder.out_dir)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Scheduler, "_tick_until_done", interrupted)
+    code = main(["-q", "eval", str(SKILL), "--objects", "mug", "--trials", "2",
+                 "--explorers", "dhd", "--out", str(tmp_path), *FAST])  # fmt: skip
+    assert code == 130
+    assert "interrupted" in capsys.readouterr().err
+    assert len(started) == 1
+    assert not list(tmp_path.rglob("eval_args.json"))
+
+
+def test_out_naming_a_file_is_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "afile"
+    out.write_text("not a folder")
+    code = main(["eval", str(SKILL), "--objects", "mug", "--out", str(out)])
+    assert code == 2
+    assert f"--out: {out} is a file; give a folder" in capsys.readouterr().err

@@ -29,8 +29,6 @@ offset), and the difference of the two rotations since the first step.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import logging
 import math
@@ -59,6 +57,8 @@ from vistac.objects import (
 )
 from vistac.plugins.filters.component import Prior
 from vistac.plugins.filters.models import LearnedModelConfig
+from vistac.recording import refuse_file_as_folder
+from vistac.skill import apply_overrides
 from vistac.types import GaussianBelief
 
 log = logging.getLogger(__name__)
@@ -428,6 +428,12 @@ class EvalOptions:
     """Variants with the first variant's action selector filter its recorded interactions
     (``vistac replay``) instead of choosing their own."""
 
+    def __post_init__(self) -> None:
+        for option, count in (("--max-objects", self.max_objects),
+                              ("--max-interactions", self.max_interactions)):  # fmt: skip
+            if count is not None and count < 1:
+                raise ConfigError(f"{option}: {count} is not a count; give 1 or more")
+
 
 @dataclass
 class RunPlan:
@@ -542,9 +548,17 @@ def planner_override(selector: str, skill_data: dict[str, Any]) -> str:
     if isinstance(planner, dict) and planner.get("plugin") == plugin and planner.get("with"):
         component["with"] = dict(planner["with"])
     elif selector == "info_gain":
-        rate_hz = float(skill_data.get("rate_hz", 15.0))
+        rate_hz = _rate_hz(skill_data)
         component["with"] = {"horizon_s": INFO_GAIN_HORIZON_S, "rate_hz": rate_hz}
     return "components.planner=" + json.dumps(component)
+
+
+def _rate_hz(skill_data: dict[str, Any]) -> float:
+    """The skill's ``rate_hz`` (Hz; 15 when unset); a ConfigError when it is no number."""
+    rate = skill_data.get("rate_hz", 15.0)
+    if isinstance(rate, bool) or not isinstance(rate, int | float):
+        raise ConfigError(f"rate_hz: {rate!r} is not a number")
+    return float(rate)
 
 
 def select_objects(selection: Sequence[str], out: Path, max_objects: int | None) -> list[Path]:
@@ -564,7 +578,7 @@ def select_objects(selection: Sequence[str], out: Path, max_objects: int | None)
                 )
             paths.append(path.resolve())
     paths = list(dict.fromkeys(paths))
-    return paths[:max_objects] if max_objects else paths
+    return paths[:max_objects] if max_objects is not None else paths
 
 
 def _architecture(checkpoint: Path) -> dict[str, int]:
@@ -616,20 +630,22 @@ def learned_model_options(skill_data: dict[str, Any]) -> dict[str, Any]:
 
 MODEL_OPTION_PREFIX = "components.model.with."
 """``--set`` overrides of the process model's options (applied to every variant's model)."""
+PLANNER_OPTION_PREFIX = "components.planner.with."
+"""``--set`` overrides of the action selector's options (applied to every variant's)."""
 
 
 def plan_runs(options: EvalOptions, objects: Sequence[Path], kind: str) -> list[RunPlan]:
     """Every (object, variant) run with its ``--set`` overrides or its skip reason."""
     folder = options.checkpoints or options.skill.parent / "checkpoints"
-    skill_data = read_skill(options.skill)
+    # The variant sets the whole model and planner; the user's options of them refine
+    # those, after them. The user's other overrides (rate_hz, ...) hold for the variant's.
+    model_options, planner_options, common = _split_overrides(options.overrides)
+    skill_data = apply_overrides(read_skill(options.skill), list(common))
     learned = learned_model_options(skill_data)
-    # The variant sets the whole model; the user's options of it refine that, after it.
-    model_options = [o for o in options.overrides if o.startswith(MODEL_OPTION_PREFIX)]
-    common = [o for o in options.overrides if not o.startswith(MODEL_OPTION_PREFIX)]
     noise = folder / f"obs_noise_{kind}.pt"
     if noise.is_file():
         common.append(f"components.filter.with.noise_checkpoint={noise.resolve()}")
-    if options.max_interactions:
+    if options.max_interactions is not None:
         common.append(f"tree.sequence.1.repeat.max={options.max_interactions}")
     plans = []
     for path in objects:
@@ -642,13 +658,23 @@ def plan_runs(options: EvalOptions, objects: Sequence[Path], kind: str) -> list[
             else:
                 planner = planner_override(variant.selector, skill_data)
                 plan.overrides = [*common, f"components.world.with.object={path.resolve()}",
-                                  model, *model_options, planner]  # fmt: skip
+                                  model, *model_options, planner,
+                                  *planner_options]  # fmt: skip
                 if not variant.estimate_parameters:
                     plan.overrides.append("components.filter.with.estimate_parameters=false")
             plans.append(plan)
     if options.paired:
         _pair(plans)
     return plans
+
+
+def _split_overrides(overrides: Sequence[str]) -> tuple[list[str], list[str], list[str]]:
+    """The user's ``--set`` overrides of the process model's options, of the action
+    selector's options, and the others."""
+    model = [o for o in overrides if o.startswith(MODEL_OPTION_PREFIX)]
+    planner = [o for o in overrides if o.startswith(PLANNER_OPTION_PREFIX)]
+    other = [o for o in overrides if o not in model and o not in planner]
+    return model, planner, other
 
 
 def _pair(plans: Sequence[RunPlan]) -> None:
@@ -671,8 +697,10 @@ def run_dir_of(out: Path, plan: RunPlan) -> Path:
 
 
 def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
-    """Run the skill for ``plan`` (reusing a finished run with the same arguments)."""
-    from vistac.cli import main
+    """Run the skill for ``plan`` (reusing a finished run with the same arguments).
+
+    KeyboardInterrupt when the run was interrupted: Ctrl-C stops the whole evaluation."""
+    from vistac.campaign import run_quietly
 
     run_dir = run_dir_of(options.out, plan)
     args = ["-q", "run", str(options.skill), "--out", str(run_dir), "--overwrite"]
@@ -685,14 +713,9 @@ def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
         log.info("reusing %s", run_dir)
         return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0}
     log.info("running %s on %s", plan.variant.label, plan.spec.name)
-    level = logging.getLogger("vistac").level
-    printed = io.StringIO()
-    try:
-        with contextlib.redirect_stdout(printed):
-            code = main(args)
-    finally:  # the nested CLI call resets the package's log level to -q
-        logging.getLogger("vistac").setLevel(level)
-    log.debug("%s", printed.getvalue())
+    stamp.unlink(missing_ok=True)  # a failed run here must not pass for the stamped one
+    code, printed = run_quietly(args)
+    log.debug("%s", printed)
     if code != 0:
         return {"status": "failed", "run_dir": str(run_dir), "exit_code": code,
                 "reason": f"the skill run exited with {code}; see {run_dir}"}  # fmt: skip
@@ -718,6 +741,7 @@ def replay_run(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
                 "reason": f"nothing to replay: {plan.lead.variant.label}'s run failed"}  # fmt: skip
     log.info("replaying %s's run on %s with %s", plan.lead.variant.label, plan.spec.name,
              plan.variant.label)  # fmt: skip
+    stamp.unlink(missing_ok=True)  # a failed replay here must not pass for the stamped one
     try:
         replay(source, run_dir, load_plugins(), list(plan.overrides), overwrite=True)
     except VistacError as error:
@@ -1141,6 +1165,7 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
     chosen_variants(options)  # a bad --variants/--models pair fails before anything runs
     prior = skill_prior(options.skill)
     kind = skill_interaction(options.skill)
+    refuse_file_as_folder(options.out)
     created = not options.out.exists()
     options.out.mkdir(parents=True, exist_ok=True)
     try:
