@@ -4,7 +4,7 @@ one planning step of ``actions.icem``.
 Targets (issue: action selection), torch on one thread, the shipped GNN push checkpoint
 (hidden 32), a two-link object:
 
-- info gain: < 200 ms per choice with a 2.5 s horizon at 15 Hz (37 prediction steps of all 32
+- info gain: < 200 ms per choice with a 2.5 s horizon at 15 Hz (38 prediction steps of all 32
   candidates in one batch), C = 100 sigma points in the filter, 32 in the look-ahead. Peer in
   the same run: the same choice by ``actions.random`` (no prediction).
 - iCEM: < 100 ms per planning step with the controller of skills/goal_push.yaml (horizon 2
@@ -27,6 +27,8 @@ from vistac.testing import build_components, two_box_scene
 ROOT = Path(__file__).resolve().parents[1]
 CANDIDATES = 32
 HORIZON_S = 2.5
+RATE_HZ = 15.0
+"""The info-gain look-ahead's rate (the plugin's default, the skills' control rate)."""
 TARGET_S = 0.2
 PLANNING_TARGET_S = 0.1
 GOAL = np.array([0.06, 0.50, 0.0])
@@ -116,7 +118,7 @@ def run(repeats: int) -> list[Row]:
             passed=active_s < TARGET_S,
             peer="actions.random, same candidates",
             peer_value=random_s * 1e3,
-            note="torch threads = 1; 37 batched prediction steps",
+            note=f"torch threads = 1; {round(HORIZON_S * RATE_HZ)} batched prediction steps",
         ),
         Row(
             name="iCEM planning step, goal_push controller (GNN 32, L=2)",

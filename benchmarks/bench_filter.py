@@ -137,7 +137,12 @@ def time_filterpy_step_s(repeats: int) -> float:
         ukf.predict()
         ukf.update(z)
 
-    return median_time_s(step, max(1, repeats // 5), warmup=1)
+    return median_time_s(step, peer_repeats(repeats), warmup=1)
+
+
+def peer_repeats(repeats: int) -> int:
+    """The filterpy UKF's timed steps (each takes seconds): a fifth of ``repeats``, >= 3."""
+    return max(3, repeats // 5)
 
 
 def run(repeats: int) -> list[Row]:
@@ -145,7 +150,8 @@ def run(repeats: int) -> list[Row]:
     torch.set_num_threads(1)
     try:
         dual_s, dual_cpu_s = time_dual_step_s(repeats, GNN)
-        chain_s, chain_cpu_s = time_dual_step_s(max(1, repeats // 2), ANALYTICAL)
+        chain_repeats = max(3, repeats // 2)
+        chain_s, chain_cpu_s = time_dual_step_s(chain_repeats, ANALYTICAL)
         try:
             peer_s: float | None = time_filterpy_step_s(repeats)
         except ImportError:
@@ -162,7 +168,8 @@ def run(repeats: int) -> list[Row]:
             peer="filterpy UKF, pose only (12 dims)",
             peer_value=None if peer_s is None else 1.0 / peer_s,
             note=f"torch threads = 1; CPU time {1e3 * dual_cpu_s:.1f} ms a step"
-            + ("" if peer_s is not None else "; filterpy missing"),
+            + (f"; peer: median of {peer_repeats(repeats)}" if peer_s is not None
+               else "; filterpy missing"),
         ),
         Row(
             name="dual filter step (C=100, L=2, analytical chain, 4098 obs)",
@@ -173,7 +180,7 @@ def run(repeats: int) -> list[Row]:
             peer="the same step with the GNN 64",
             peer_value=1.0 / dual_s,
             note=f"torch threads = 1; CPU time {1e3 * chain_cpu_s:.1f} ms a step; minimum-power "
-            "Newton solve, 30 iterations",
+            f"Newton solve, 30 iterations; median of {chain_repeats}",
         ),
     ]
 

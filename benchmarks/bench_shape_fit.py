@@ -4,7 +4,8 @@ Clean: the whole surface above the table of a rounded box, 2 mm Gaussian noise. 
 box-like superquadric seen from one side (the half facing the view direction), 2 mm noise and
 20% uniform outliers in the bounding box. Target (issue: shape perception): a hard fit of 2,000
 points in <= 100 ms. For reference, the authors' EMS code (Liu et al., CVPR 2022) took 33 / 70 /
-358 ms clean and 93 / 225 / 1,800 ms hard on this machine (not rerun here).
+358 ms clean and 93 / 225 / 1,800 ms hard, measured once on 2026-11-21 on an earlier machine
+(not rerun here; not a same-run peer).
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ def run(repeats: int) -> list[Row]:
                 "ms",
                 "<= 100 ms" if targeted else "-",
                 fit_s <= TARGET_S if targeted else True,
-                "authors' EMS code, this machine (reference, not rerun)",
+                "authors' EMS code, measured 2026-11-21 on an earlier machine, not rerun",
                 PEER_MS[(kind, count)],
                 "half view, 2 mm noise, 20% outliers" if hard else "full view, 2 mm noise",
             ))
