@@ -94,8 +94,9 @@ def test_the_example_process_model_conforms(installed: Path) -> None:
 
 
 def test_the_dual_filter_runs_the_example_process_model(installed: Path, tmp_path: Path) -> None:
-    """rigid_push.yaml: the dual filter updates the belief through the example's model; its
-    finger force shows the friction load, so the std of m and f shrink from the prior's."""
+    """rigid_push.yaml: two pushes, each after a look; the dual filter updates the belief
+    through the example's model; its finger force shows the friction load, so the std of m
+    and f shrink from the prior's."""
     out = tmp_path / "out"
     result = run_vistac(
         "-q", "run", str(EXAMPLE / "rigid_push.yaml"), "--out", str(out),
@@ -103,6 +104,7 @@ def test_the_dual_filter_runs_the_example_process_model(installed: Path, tmp_pat
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["status"] == "success" and summary["episodes"]
+    assert summary["status"] == "success" and len(summary["episodes"]) == 2
+    assert "blocked_actions" not in summary  # each push chosen after a fresh look
     for name in ("m_0", "f_0"):
         assert summary["belief"][name]["std"] < 0.7 * summary["prior"][name]["std"], name
