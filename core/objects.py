@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -231,16 +230,17 @@ def to_world_xy(points: FloatArray, pose: FloatArray) -> FloatArray:
 def match_links(belief_xy: FloatArray, true_xy: FloatArray) -> dict[int, int]:
     """Belief link -> true link, minimising the summed distance of positions [Lb, 2], [Lt, 2].
 
-    With fewer true than belief links, the surplus belief links stay unmatched.
+    With fewer true than belief links, the surplus belief links (the farthest) stay
+    unmatched; with fewer belief links, the surplus true links.
     """
-    n_belief, n_true = len(belief_xy), len(true_xy)
-    best: tuple[float, dict[int, int]] = (math.inf, {})
-    for targets in itertools.permutations(range(n_true), min(n_belief, n_true)):
-        pairs = dict(zip(range(n_belief), targets, strict=False))
-        cost = sum(float(np.linalg.norm(belief_xy[b] - true_xy[t])) for b, t in pairs.items())
-        if cost < best[0]:
-            best = (cost, pairs)
-    return best[1]
+    from scipy.optimize import linear_sum_assignment
+
+    belief, true = np.asarray(belief_xy, dtype=float), np.asarray(true_xy, dtype=float)
+    if len(belief) == 0 or len(true) == 0:
+        return {}
+    distance = np.linalg.norm(belief[:, None, :2] - true[None, :, :2], axis=-1)
+    rows, columns = linear_sum_assignment(distance)  # either side may have the surplus
+    return {int(b): int(t) for b, t in zip(rows, columns, strict=True)}
 
 
 def com_in_frames(

@@ -237,3 +237,6 @@ def test_links_match_by_position_and_the_com_moves_into_their_frames() -> None:
     single = match_links(frames[:1, :2], true_poses[:, :2])
     assert single == {0: 1}
     assert "com_x_0" not in com_in_frames(truth, single, frames[:1], true_poses)
+    # two frames for one link: the nearer frame is matched, whichever comes first
+    assert match_links(np.array([[0.3, 0.2], [0.0, 0.45]]), np.array([[0.0, 0.45]])) == {1: 0}
+    assert match_links(np.zeros((0, 2)), true_poses[:, :2]) == {}
