@@ -322,6 +322,22 @@ def test_camera_sees_the_box_top_at_its_height(tmp_path: Path) -> None:
     np.testing.assert_allclose(points[table, 2], 0.0, atol=0.02)
 
 
+def test_a_short_range_keeps_every_pixel_whose_depth_is_within_it(tmp_path: Path) -> None:
+    """The range limits depth, not the distance along a ray: a box top at depth 0.5 m seen
+    off-axis (rays up to 0.62 m long) stays whole with a 0.52 m range."""
+    depths = []
+    for max_range_m in (3.0, 0.52):
+        ctx = sim_setup(tmp_path / str(max_range_m), box_object(pose=[0.38, 0.45, 0.0]))
+        cam = add_camera(ctx, dropout_prob=0.0, depth_noise_m=0.0, max_range_m=max_range_m)
+        eye, target = np.array([0.0, 0.45, 0.55]), np.array([0.0, 0.45, 0.0])
+        cam.move_to(Viewpoint(eye_m=eye, target_m=target))
+        depths.append(cam.capture().depth_m)
+    top = np.abs(depths[0] - 0.5) < 1e-6
+    assert top.sum() > 500
+    np.testing.assert_allclose(depths[1][top], 0.5, atol=1e-6)
+    assert np.isnan(depths[1][depths[0] > 0.52]).all()  # the table beyond the range
+
+
 def test_camera_dropouts_are_nan_and_resampling_works(tmp_path: Path) -> None:
     ctx = sim_setup(tmp_path, box_object())
     clean = _top_view(ctx, dropout_prob=0.0)

@@ -128,7 +128,9 @@ class SimDepthCamera(Component):
         geom_id = np.empty(count, dtype=np.int32)
         depth_m = np.empty(count)
         origin = np.ascontiguousarray(self.world_from_camera[:3, 3])
-        cutoff = self.config.max_range_m * float(np.abs(rays_camera).max())
+        # mj_multiRay cuts off at a straight-line distance: far enough for the longest ray
+        # to reach the depth range (``_corrupt`` applies the range to the depth itself)
+        cutoff = self.config.max_range_m * float(np.linalg.norm(rays_camera, axis=1).max())
 
         def cast(chunk: slice) -> None:
             mujoco.mj_multiRay(
