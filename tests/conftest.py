@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -68,3 +69,21 @@ def write(path: Path, text: str) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
     return path
+
+
+def fake_run(monkeypatch: pytest.MonkeyPatch, code: int) -> list[list[str]]:
+    """``vistac run`` (``vistac.cli.main``) replaced by one that writes a summary and exits
+    ``code``; returns the list its calls' arguments are appended to."""
+    import vistac.cli
+
+    calls: list[list[str]] = []
+
+    def run(args: list[str]) -> int:
+        run_dir = Path(args[args.index("--out") + 1])
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "summary.json").write_text(json.dumps({"exit_code": code}))
+        calls.append(args)
+        return code
+
+    monkeypatch.setattr(vistac.cli, "main", run)
+    return calls

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from conftest import fake_run
 from vistac.cli import main
 from vistac.errors import DataError
 from vistac.objects import generate_configurations, load_object, object_from_dict
@@ -367,23 +368,6 @@ def test_ctrl_c_stops_the_whole_evaluation(
     assert not list(out.rglob("eval_args.json")) and not (out / "eval.json").exists()
 
 
-def _fake_run(monkeypatch: pytest.MonkeyPatch, code: int) -> list[list[str]]:
-    """``vistac run`` replaced by one that writes a summary and exits ``code``; its calls."""
-    import vistac.cli
-
-    calls: list[list[str]] = []
-
-    def run(args: list[str]) -> int:
-        run_dir = Path(args[args.index("--out") + 1])
-        run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "summary.json").write_text(json.dumps({"exit_code": code}))
-        calls.append(args)
-        return code
-
-    monkeypatch.setattr(vistac.cli, "main", run)
-    return calls
-
-
 def test_a_failed_rerun_is_not_reused_as_the_finished_run_before_it(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -393,14 +377,14 @@ def test_a_failed_rerun_is_not_reused_as_the_finished_run_before_it(
     plan = RunPlan(rect2, load_object(rect2), VARIANTS[0], overrides=["a=1"])
     options = [EvalOptions(skill=ROOT / "skills/explore_push.yaml", out=tmp_path, seed=seed)
                for seed in (0, 1)]  # fmt: skip
-    calls = _fake_run(monkeypatch, 0)
+    calls = fake_run(monkeypatch, 0)
     assert execute(plan, options[0])["status"] == "ok"
-    _fake_run(monkeypatch, 1)
+    fake_run(monkeypatch, 1)
     assert execute(plan, options[1])["status"] == "failed"
     assert not (run_dir_of(tmp_path, plan) / "eval_args.json").exists()
-    calls = _fake_run(monkeypatch, 0)
+    calls = fake_run(monkeypatch, 0)
     assert execute(plan, options[0])["status"] == "ok" and len(calls) == 1
-    _fake_run(monkeypatch, 130)
+    fake_run(monkeypatch, 130)
     with pytest.raises(KeyboardInterrupt):
         execute(plan, options[1])
     assert not (run_dir_of(tmp_path, plan) / "eval_args.json").exists()

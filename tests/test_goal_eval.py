@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
+from conftest import fake_run
 from vistac.campaign import run_once
 from vistac.cli import main
 from vistac.errors import ConfigError
@@ -146,23 +147,6 @@ def test_eval_runs_both_modes_and_reuses_finished_runs(
     assert summary.stat().st_mtime_ns == stamp
 
 
-def _fake_run(monkeypatch: pytest.MonkeyPatch, code: int) -> list[list[str]]:
-    """``vistac run`` replaced by one that writes a summary and exits ``code``; its calls."""
-    import vistac.cli
-
-    calls: list[list[str]] = []
-
-    def run(args: list[str]) -> int:
-        run_dir = Path(args[args.index("--out") + 1])
-        run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "summary.json").write_text(json.dumps({"exit_code": code}))
-        calls.append(args)
-        return code
-
-    monkeypatch.setattr(vistac.cli, "main", run)
-    return calls
-
-
 def test_an_interrupted_run_stops_the_campaign_and_is_never_reused(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -171,11 +155,11 @@ def test_an_interrupted_run_stops_the_campaign_and_is_never_reused(
     run_dir = tmp_path / "run"
     first, second = (["-q", "run", "skill.yaml", "--out", str(run_dir), "--seed", seed]
                      for seed in ("0", "1"))  # fmt: skip
-    _fake_run(monkeypatch, 0)
+    fake_run(monkeypatch, 0)
     assert run_once(first, run_dir, "goal eval")[0] == 0
-    _fake_run(monkeypatch, 130)
+    fake_run(monkeypatch, 130)
     with pytest.raises(KeyboardInterrupt):
         run_once(second, run_dir, "goal eval")
     assert not (run_dir / "eval_args.json").exists()
-    calls = _fake_run(monkeypatch, 0)  # the folder holds the interrupted run, not the first
+    calls = fake_run(monkeypatch, 0)  # the folder holds the interrupted run, not the first
     assert run_once(first, run_dir, "goal eval")[0] == 0 and len(calls) == 1
