@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -115,6 +116,39 @@ def test_replay_reproduces_the_runs_belief(recorded: Path, tmp_path: Path) -> No
     assert set(summary["errors"]) == {"m_0", "f_0", "com_x_0", "com_y_0"}
     info = json.loads((out / "run.json").read_text())
     assert info["replay_of"] == str(recorded) and info["status"] == "success"
+
+
+def test_each_filter_step_predicts_with_the_tcp_at_its_start(
+    recorded: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As the models were trained: step k is predicted from k - 1 with the TCP of step k - 1
+    (the first step with its own), and the push-level rollout likewise."""
+    from vistac.pluginmanager import load_plugins
+    from vistac.plugins.filters import component, dual
+    from vistac.replay import replay
+
+    seen: list[float] = []
+    step = dual.DualFilter.step
+
+    def spy(self: Any, belief: Any, inputs: Any, *args: Any, **kwargs: Any) -> Any:
+        seen.append(float(inputs.tcp[0]))
+        return step(self, belief, inputs, *args, **kwargs)
+
+    rollouts: list[list[float]] = []
+    end_poses = component.end_poses
+
+    def rollout_spy(predict: Any, layout: Any, states: Any, inputs: Any, *args: Any) -> Any:
+        rollouts.append([float(i.tcp[0]) for i in inputs])
+        return end_poses(predict, layout, states, inputs, *args)
+
+    monkeypatch.setattr(dual.DualFilter, "step", spy)
+    monkeypatch.setattr(component, "end_poses", rollout_spy)
+    replay(recorded, tmp_path / "out", load_plugins())
+    episode = load_episode(recorded / "episodes" / "0000")
+    tcp_x = [float(s.arm.pose[0]) for s in episode.steps if s.depth is not None]
+    assert len(tcp_x) > 3 and len(set(tcp_x)) > 2  # the TCP moves
+    assert seen == [tcp_x[0], *tcp_x[:-1]]
+    assert rollouts == [tcp_x[:-1]]  # push_evidence is on in explore_push.yaml
 
 
 def test_replay_with_another_filter_setting(recorded: Path, tmp_path: Path) -> None:

@@ -519,11 +519,14 @@ class DualFilterComponent(Component):
         inputs = self._inputs(episode)
         dt_s = float(np.median(np.diff([s.time_s for s in steps]))) if len(steps) > 1 else 1 / 15
         start = None
+        # Into step k with the TCP at its start, step k - 1, as the models were trained
+        # (``ProcessInput``); into the first step with the first.
+        starts = [steps[0], *steps[:-1]]
         with torch.no_grad():
-            for step in steps:
+            for step, step_start in zip(steps, starts, strict=True):
                 observation = self._observation(step, filter_)
                 self.belief = filter_.step(
-                    self.belief, inputs(step), dt_s, observation, self.generator
+                    self.belief, inputs(step_start), dt_s, observation, self.generator
                 )
                 if start is None:
                     start = self.belief
@@ -540,7 +543,7 @@ class DualFilterComponent(Component):
                 )
             if self.config.push_evidence.enabled and self.config.estimate_parameters:
                 assert start is not None
-                self._push_update(start, [inputs(step) for step in steps[1:]], dt_s)
+                self._push_update(start, [inputs(step) for step in steps[:-1]], dt_s)
         return self._public()
 
     def _push_update(self, start: Belief, inputs: list[ProcessInput], dt_s: float) -> None:
