@@ -91,9 +91,11 @@ class ChangeDetected(SkillBehaviour):
 
     Reads the filter's ``step_history()``; appends a ``ChangeReport`` of the last
     interaction to the summary's ``change_detection`` list (the first flag also sets
-    ``change_detected_after_s``)."""
+    ``change_detected_after_s``). FAILURE without a report when the last action was not
+    carried out (``execute_action`` backed off), so no interaction is assessed twice."""
 
     reads = ("belief",)
+    optional_reads = ("episode",)
     role_fields = {"filter": "filter"}
 
     class Config(ComponentConfig):
@@ -114,10 +116,17 @@ class ChangeDetected(SkillBehaviour):
             raise ConfigError(
                 "change_detected needs a filter that keeps a per-step history (filters.dual)"
             )
+        episode = self.read("episode")
+        if episode is None:
+            self.feedback_message = "the last action was not carried out: nothing to assess"
+            return Status.FAILURE
         steps = history()
-        if not steps:
-            raise ConfigError("change_detected: no filter steps yet; put it after update_belief")
-        last = [step for step in steps if step["episode"] == steps[-1]["episode"]]
+        if not steps or steps[-1]["episode"] != episode.index:
+            raise ConfigError(
+                f"change_detected: the filter has no steps of interaction {episode.index}; "
+                "put it after update_belief"
+            )
+        last = [step for step in steps if step["episode"] == episode.index]
         config = self.config
         report = assess(last, config.modality, config.window_s, config.threshold)
         self.run.results.setdefault("change_detection", []).append(asdict(report))
