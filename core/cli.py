@@ -516,8 +516,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--paired", action="store_true",
         help="variants with the first variant's action selector (a-ff, a-analytical after "
-        "a-gnn) filter its recorded interactions (vistac replay) instead of their own: the "
-        "models compared on the same pushes",
+        "a-gnn) and those that do not estimate parameters (gnn-fixed) filter its recorded "
+        "interactions (vistac replay) instead of their own: compared on the same pushes",
     )  # fmt: skip
     evaluate.add_argument(
         "--trials", type=int, default=10,

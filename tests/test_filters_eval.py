@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +41,7 @@ from vistac.plugins.filters.evaluate import (
     pose_change_errors,
     product_posterior_mean,
     reference_records,
+    replay_run,
     run_dir_of,
     tables_markdown,
     tracking_table,
@@ -674,6 +676,65 @@ def test_paired_eval_filters_the_first_variants_interactions(tmp_path: Path) -> 
     stamp = (runs / "a-analytical/eval_args.json").stat().st_mtime_ns
     assert main(args) == 0
     assert (runs / "a-analytical/eval_args.json").stat().st_mtime_ns == stamp
+
+
+def test_a_replay_is_reused_only_for_the_same_finished_lead_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The replay's stamp holds the lead's arguments and summary: a lead rerun with another
+    seed, or giving other pushes, is replayed again; a failed lead leaves nothing to replay
+    (before, the old replay was reused in all three cases)."""
+    import vistac.pluginmanager
+    import vistac.replay
+
+    replays: list[Path] = []
+
+    def replay(source: Path, out_dir: Path, *_: Any, **__: Any) -> dict[str, Any]:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "summary.json").write_text("{}")
+        replays.append(source)
+        return {}
+
+    monkeypatch.setattr(vistac.replay, "replay", replay)
+    monkeypatch.setattr(vistac.pluginmanager, "load_plugins", lambda: None)
+    rect2 = ROOT / "skills/objects/rect2.yaml"
+    variants = {variant.key: variant for variant in VARIANTS}
+    lead = RunPlan(rect2, load_object(rect2), variants["a-gnn"], overrides=["a=1"])
+    paired = RunPlan(rect2, lead.spec, variants["a-analytical"], overrides=["b=1"], lead=lead)
+    seed_0, seed_1 = (EvalOptions(skill=ROOT / "skills/explore_push.yaml", out=tmp_path,
+                                  seed=seed, paired=True) for seed in (0, 1))  # fmt: skip
+    fake_run(monkeypatch, 0)
+    for options in (seed_0, seed_0, seed_1):
+        assert execute(lead, options)["status"] == "ok"
+        assert replay_run(paired, options)["status"] == "ok"
+    assert len(replays) == 2  # seed 0's replay reused once, then seed 1's lead replayed
+    (run_dir_of(tmp_path, lead) / "summary.json").write_text('{"other": "pushes"}')
+    assert replay_run(paired, seed_1)["status"] == "ok" and len(replays) == 3
+    fake_run(monkeypatch, 1)
+    assert execute(lead, seed_0)["status"] == "failed"
+    failed = replay_run(paired, seed_0)
+    assert failed["status"] == "failed" and len(replays) == 3
+    assert failed["reason"] == "nothing to replay: A-GNN's run failed"
+
+
+def test_paired_variants_follow_the_first_variant_that_runs(tmp_path: Path) -> None:
+    """--paired: GNN-fixed, which estimates no parameters, filters A-GNN's pushes as well
+    (before, it ran its own random ones); a variant skipped for want of a checkpoint leads
+    none (before, A-Analytical was skipped with the A-GNN it was paired with)."""
+    rect2 = ROOT / "skills/objects/rect2.yaml"
+    options = EvalOptions(
+        skill=ROOT / "skills/explore_push.yaml", out=tmp_path, paired=True,
+        checkpoints=_checkpoints(tmp_path / "ckpt"),
+        variants=("a-gnn", "r-gnn", "a-analytical", "gnn-fixed"),
+    )  # fmt: skip
+    leads = {p.variant.key: p.lead and p.lead.variant.key
+             for p in plan_runs(options, [rect2], "push")}  # fmt: skip
+    assert leads == {"a-gnn": None, "r-gnn": None, "a-analytical": "a-gnn", "gnn-fixed": "a-gnn"}
+    (tmp_path / "bare").mkdir()
+    bare = replace(options, checkpoints=tmp_path / "bare", variants=("a-gnn", "a-analytical"))
+    gnn, analytical = plan_runs(bare, [rect2], "push")
+    assert gnn.skipped and analytical.skipped is None
+    assert analytical.lead is None
 
 
 def _scored_object(name: str, variant: str, m_error: float) -> dict[str, Any]:

@@ -29,6 +29,7 @@ offset), and the difference of the two rotations since the first step.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -425,8 +426,9 @@ class EvalOptions:
     seed: int | None = None
     overrides: tuple[str, ...] = ()
     paired: bool = False
-    """Variants with the first variant's action selector filter its recorded interactions
-    (``vistac replay``) instead of choosing their own."""
+    """Variants with the first unskipped variant's action selector, and those that do not
+    estimate parameters, filter its recorded interactions (``vistac replay``) instead of
+    choosing their own."""
 
     def __post_init__(self) -> None:
         for option, count in (("--max-objects", self.max_objects),
@@ -678,12 +680,16 @@ def _split_overrides(overrides: Sequence[str]) -> tuple[list[str], list[str], li
 
 
 def _pair(plans: Sequence[RunPlan]) -> None:
-    """Per object, let every plan with the first variant's selector replay that variant's
-    run (``lead``); the others keep their own runs."""
+    """Per object, let every plan with the first unskipped variant's selector, and every one
+    that does not estimate parameters (a replay uses no selector), replay that variant's run
+    (``lead``); the others keep their own runs."""
     leads: dict[Path, RunPlan] = {}
     for plan in plans:
+        if plan.skipped:
+            continue
         lead = leads.setdefault(plan.object_path, plan)
-        if lead is not plan and plan.variant.selector == lead.variant.selector:
+        same_selector = plan.variant.selector == lead.variant.selector
+        if lead is not plan and (same_selector or not plan.variant.estimate_parameters):
             plan.lead = lead
 
 
@@ -724,21 +730,27 @@ def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
 
 
 def replay_run(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
-    """Replay ``plan.lead``'s run with ``plan``'s overrides (reusing a finished replay)."""
+    """Replay ``plan.lead``'s run with ``plan``'s overrides (reusing a finished replay of
+    the same lead run: the lead's arguments and summary are part of the replay's stamp)."""
     from vistac.pluginmanager import load_plugins
     from vistac.replay import replay
 
     assert plan.lead is not None
     source, run_dir = run_dir_of(options.out, plan.lead), run_dir_of(options.out, plan)
-    args = ["replay", str(source), *plan.overrides]
+    lead_stamp = source / "eval_args.json"
+    if not lead_stamp.is_file():  # written once a run has succeeded
+        return {"status": "failed", "run_dir": str(run_dir), "exit_code": 1,
+                "reason": f"nothing to replay: {plan.lead.variant.label}'s run failed"}  # fmt: skip
+    args = {
+        "replay": str(source), "overrides": plan.overrides,
+        "lead": json.loads(lead_stamp.read_text(encoding="utf-8")),
+        "lead_summary": hashlib.sha256((source / "summary.json").read_bytes()).hexdigest(),
+    }  # fmt: skip
     stamp = run_dir / "eval_args.json"
     done = (run_dir / "summary.json").is_file() and stamp.is_file()
     if done and json.loads(stamp.read_text(encoding="utf-8")) == args:
         log.info("reusing %s", run_dir)
         return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0, "replay_of": str(source)}
-    if not (source / "eval_args.json").is_file():  # written once a run has succeeded
-        return {"status": "failed", "run_dir": str(run_dir), "exit_code": 1,
-                "reason": f"nothing to replay: {plan.lead.variant.label}'s run failed"}  # fmt: skip
     log.info("replaying %s's run on %s with %s", plan.lead.variant.label, plan.spec.name,
              plan.variant.label)  # fmt: skip
     stamp.unlink(missing_ok=True)  # a failed replay here must not pass for the stamped one
@@ -792,9 +804,6 @@ def run_record(plan: RunPlan, options: EvalOptions, kind: str) -> dict[str, Any]
     if plan.skipped:
         log.info("skipping %s on %s: %s", plan.variant.label, plan.spec.name, plan.skipped)
         return record | {"status": "skipped", "reason": plan.skipped}
-    if plan.lead is not None and plan.lead.skipped:
-        return record | {"status": "skipped", "reason": f"paired with {plan.lead.variant.label},"
-                         f" which was skipped: {plan.lead.skipped}"}  # fmt: skip
     record |= execute(plan, options) if plan.lead is None else replay_run(plan, options)
     if record["status"] == "ok":
         record |= score_run(Path(record["run_dir"]))
