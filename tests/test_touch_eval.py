@@ -7,7 +7,15 @@ from pathlib import Path
 
 import pytest
 from vistac.cli import main
-from vistac.plugins.touch.campaign import aggregate, is_touch_skill
+from vistac.errors import ConfigError
+from vistac.plugins.touch import campaign
+from vistac.plugins.touch.campaign import (
+    TouchEvalOptions,
+    aggregate,
+    evaluate_touch,
+    is_touch_skill,
+    run_trial,
+)
 
 SKILLS = Path(__file__).resolve().parents[1] / "skills"
 SKILL = SKILLS / "touch_recognise.yaml"
@@ -62,6 +70,41 @@ def test_eval_runs_every_trial_and_writes_the_tables(
     stamp = summary.stat().st_mtime_ns
     assert main(args) == 0  # finished runs with the same arguments are reused
     assert summary.stat().st_mtime_ns == stamp
+
+
+def _options(out: Path, *objects: str) -> TouchEvalOptions:
+    return TouchEvalOptions(skill=SKILL, out=out, objects=objects, trials=1,
+                            explorers=("dhd",), seed=0)  # fmt: skip
+
+
+def test_a_mesh_path_object_runs_in_a_folder_named_after_its_stem(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An absolute path no longer drops --out, nor does ../ leave it."""
+    run_dirs: list[Path] = []
+
+    def failing_run(args: list[str], run_dir: Path, who: str) -> tuple[int, None]:
+        run_dirs.append(run_dir)
+        return 1, None
+
+    monkeypatch.setattr(campaign, "run_once", failing_run)
+    out = tmp_path / "out"
+    for obj in ("/abs/learned/cone_learned.ply", "../x.ply", "mug"):
+        assert run_trial(_options(out, obj), obj, "dhd", 0)["status"] == "failed"
+    assert run_dirs == [out / "runs" / "dhd" / name / "trial_00"
+                        for name in ("cone_learned", "x", "mug")]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "objects", [("run1/cone_learned.ply", "run2/cone_learned.ply"), ("mug", "shapes/mug.obj")]
+)
+def test_objects_sharing_a_runs_folder_are_a_config_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, objects: tuple[str, str]
+) -> None:
+    monkeypatch.setattr(campaign, "run_once", lambda *args: pytest.fail("a trial ran"))
+    with pytest.raises(ConfigError, match=rf"{objects[0]} and {objects[1]} would share the "
+                       r"runs folder .*rename one of the files"):  # fmt: skip
+        evaluate_touch(_options(tmp_path, *objects))
 
 
 @pytest.mark.parametrize(

@@ -21,6 +21,7 @@ from vistac.plugins.touch.library import (
     load_class,
     mesh_from_field,
     novel_classes,
+    resolve_shape,
     sphere,
 )
 from vistac.plugins.touch.meshes import GridSDF, Mesh, load_mesh, save_mesh, transform_sdf
@@ -71,7 +72,8 @@ def test_sphere_sdf_matches_the_analytic_distance_and_normal() -> None:
 def test_box_sdf_and_its_grid_match_the_analytic_distance() -> None:
     import open3d as o3d
 
-    legacy = o3d.geometry.TriangleMesh.create_box(0.2, 0.1, 0.1).translate([-0.1, -0.05, -0.05])
+    legacy = o3d.geometry.TriangleMesh.create_box(0.2, 0.1, 0.1)
+    legacy.translate([-0.1, -0.05, -0.05])
     mesh = Mesh("box", np.asarray(legacy.vertices), np.asarray(legacy.triangles, dtype=np.int64))
     points = np.array([[0.15, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.08, 0.0], [0.15, 0.09, 0.0]])
     expected = [0.05, -0.05, 0.03, np.hypot(0.05, 0.04)]
@@ -115,13 +117,36 @@ def test_transform_sdf_evaluates_in_the_world_frame() -> None:
     assert normals[0] @ [1.0, 0.0, 0.0] > 0.999  # vertex normals of a tessellated sphere
 
 
-def test_a_mesh_file_round_trips_and_is_normalised(tmp_path: Path) -> None:
+def test_a_mesh_file_round_trips_and_is_normalised_on_request(tmp_path: Path) -> None:
     path = tmp_path / "ball.ply"
     save_mesh(unit_sphere_mesh(0.3), path)
-    name, mesh = load_class(path)
-    assert name == "ball"
+    mesh = load_mesh(path, size_m=0.2)
+    assert mesh.name == "ball"
     assert mesh.extent_m.max() == pytest.approx(0.2, abs=1e-9)
     assert np.allclose(mesh.vertices_m.min(axis=0) + mesh.vertices_m.max(axis=0), 0.0)
+
+
+def test_a_mesh_file_class_keeps_its_size_and_frame(tmp_path: Path) -> None:
+    """Classes from files are read as saved (metres, own frame); library classes are 0.2 m."""
+    sphere_mesh = unit_sphere_mesh(0.05)
+    offset = np.array([0.03, -0.01, 0.02])
+    save_mesh(Mesh("ball", sphere_mesh.vertices_m + offset, sphere_mesh.triangles),
+              tmp_path / "ball.ply")  # fmt: skip
+    name, mesh = load_class(tmp_path / "ball.ply")
+    assert name == "ball"
+    assert mesh.extent_m[2] == pytest.approx(0.1, abs=1e-6)  # the poles
+    centre = (mesh.vertices_m.min(axis=0) + mesh.vertices_m.max(axis=0)) / 2.0
+    np.testing.assert_allclose(centre, offset, atol=1e-6)
+    assert resolve_shape("ball.ply", tmp_path).extent_m[2] == pytest.approx(0.1, abs=1e-6)
+    assert resolve_shape("cone", tmp_path).extent_m.max() == pytest.approx(0.2, abs=1e-9)
+
+
+def test_a_corrupt_mesh_file_is_named_as_unreadable(tmp_path: Path) -> None:
+    path = tmp_path / "garbage.ply"
+    path.write_text("this is not a mesh\n", encoding="utf-8")
+    with pytest.raises(DataError, match=r"garbage\.ply: could not be read as a mesh \(the file "
+                       r"is corrupt, empty or not a \.ply triangle mesh\)"):  # fmt: skip
+        load_mesh(path)
 
 
 def test_an_open_mesh_is_rejected_with_a_fix(tmp_path: Path) -> None:

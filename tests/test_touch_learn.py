@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ from vistac.plugins.touch.learning import (
     reconstruction_error_m,
     save_learned_shape,
 )
-from vistac.plugins.touch.library import KNOWN, NOVEL, known_class
+from vistac.plugins.touch.library import KNOWN, NOVEL, known_class, resolve_shape
 from vistac.plugins.touch.meshes import Mesh, apply_pose, load_mesh
 
 CENTRE = np.array([0.02, 0.5, 0.3])
@@ -50,6 +51,33 @@ def test_saved_shape_is_watertight_in_the_object_frame(tmp_path: Path) -> None:
     assert enclosed_volume_m3(SurfaceMesh(loaded.vertices_m, loaded.triangles)) > 0.0
     assert save_learned_shape(surface, tmp_path / "lib", "ball", pose).name == "ball_2.ply"
     assert available_path(tmp_path / "lib", "ball").name == "ball_3.ply"
+
+
+def test_the_saved_path_is_absolute_and_logged(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A relative directory gives the resolved path (listable in touch.pf's classes as is)."""
+    monkeypatch.chdir(tmp_path)
+    with caplog.at_level("INFO", logger="vistac.plugins.touch.learning"):
+        path = save_learned_shape(sphere_surface(), Path("lib"), "ball", a_pose())
+    assert path.is_absolute() and path == tmp_path.resolve() / "lib" / "ball.ply"
+    assert f"to {path}" in caplog.text
+
+
+def test_a_learned_shape_is_a_class_of_its_saved_size_and_frame(tmp_path: Path) -> None:
+    """A 0.1 m sphere saved in the object frame of a pose 4 cm off its centre, loaded back as
+    a class (a path, as in touch.pf's classes): neither rescaled to 0.2 m nor re-centred."""
+    surface, pose = sphere_surface(0.05), a_pose()
+    pose[:3, 3] += [0.03, -0.02, 0.02]
+    path = save_learned_shape(surface, tmp_path, "ball_learned", pose)
+    saved = load_mesh(path, size_m=None)
+    as_class = resolve_shape(path.name, tmp_path)
+    assert as_class.name == "ball_learned"
+    np.testing.assert_allclose(as_class.extent_m, saved.extent_m, atol=1e-9)
+    assert 0.095 < as_class.extent_m.max() < 0.101
+    np.testing.assert_allclose(as_class.vertices_m.min(axis=0), saved.vertices_m.min(axis=0))
+    centre = apply_pose(pose, as_class.vertices_m).mean(axis=0)
+    np.testing.assert_allclose(centre, surface.vertices_m.mean(axis=0), atol=1e-6)
 
 
 def test_an_open_surface_is_not_saved(tmp_path: Path) -> None:
@@ -91,7 +119,7 @@ def test_learning_metrics_measure_the_saved_shape(tmp_path: Path) -> None:
     pose = a_pose()
     world = SurfaceMesh(apply_pose(pose, truth_mesh.vertices_m), truth_mesh.triangles)
     path = save_learned_shape(world, tmp_path, "cone_copy", pose)
-    summary = {
+    summary: dict[str, Any] = {
         "learned_shape": {"saved": True, "path": str(path), "world_from_saved": pose.tolist()},
         "touch_truth": {"object": "cone", "world_from_object": pose.tolist()},
         "touch": {"touches": 42},
@@ -99,7 +127,7 @@ def test_learning_metrics_measure_the_saved_shape(tmp_path: Path) -> None:
     add_learning_metrics(summary, tmp_path)
     assert summary["learned_shape"]["steps"] == 42
     assert summary["learned_shape"]["reconstruction_error_m"] < 1e-4
-    assert summary["learned_shape"]["poisson_error_m"] is None  # no contacts in the summary
+    assert summary["learned_shape"].get("poisson_error_m") is None  # no contacts in the summary
     points, normals = truth_mesh.transformed(pose).surface_samples(400)
     summary["touch"].update(contacts=points.tolist(), normals=normals.tolist())
     add_learning_metrics(summary, tmp_path)

@@ -3,15 +3,17 @@ known object from touches on its surface."""
 
 from __future__ import annotations
 
+import re
 from math import erf, sqrt
 from pathlib import Path
 
 import numpy as np
 import pytest
-from test_touch_geometry import Ctx
+from test_touch_geometry import Ctx, unit_sphere_mesh
+from vistac.errors import ConfigError
 from vistac.plugins.touch.explore import DhdExplorer, RrtExplorer
 from vistac.plugins.touch.library import known_class
-from vistac.plugins.touch.meshes import apply_pose
+from vistac.plugins.touch.meshes import apply_pose, save_mesh
 from vistac.plugins.touch.metrics import two_way_hausdorff
 from vistac.plugins.touch.pf import (
     Particles,
@@ -158,6 +160,45 @@ def test_the_dhd_target_is_the_surface_point_farthest_from_the_contacts(tmp_path
     fresh = DhdExplorer(DhdExplorer.Config(min_contacts=1), Ctx(tmp_path))
     _, target = fresh.next_touch(variance, np.random.default_rng(0))
     assert np.allclose(target, [0.05, 0.5, 0.3 - 0.03])  # the most uncertain point instead
+
+
+def test_the_dhd_explorer_stops_when_every_surface_point_is_next_to_a_miss(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    explorer = DhdExplorer(DhdExplorer.Config(), Ctx(tmp_path))
+    surface = np.array([[0.0, 0.5, 0.3], [0.005, 0.5, 0.3]])
+    estimate = {"contacts": [[0.1, 0.5, 0.3]], "mle_surface_m": surface,
+                "mle_surface_normals": np.tile([1.0, 0.0, 0.0], (2, 1))}  # fmt: skip
+    explorer._missed = [np.array([0.0, 0.5, 0.3])]  # an unreachable target next to both
+    with caplog.at_level("INFO", logger="vistac.plugins.touch.explore"):
+        assert explorer.next_touch(estimate, np.random.default_rng(0)) is None
+    assert explorer.last_dhd_m == 0.0
+    assert "nothing left to touch" in caplog.text
+
+
+def _sphere_file(path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_mesh(unit_sphere_mesh(0.05), path)
+
+
+@pytest.mark.parametrize(
+    ("specs", "message"),
+    [(["mug", "run2/learned/cone_learned.ply", "run1/learned/cone_learned.ply"],
+      "'run2/learned/cone_learned.ply' and 'run1/learned/cone_learned.ply' are both named "
+      "'cone_learned'"),
+     (["x/mug.ply", "mug"], "'x/mug.ply' and 'mug' are both named 'mug'")],
+    ids=["two-files", "file-and-library"],
+)  # fmt: skip
+def test_two_classes_with_one_name_are_a_config_error(
+    tmp_path: Path, specs: list[str], message: str
+) -> None:
+    """Class probabilities are keyed by name: two classes named alike would share one entry."""
+    for spec in specs:
+        if spec.endswith(".ply"):
+            _sphere_file(tmp_path / spec)
+    config = TouchParticleFilter.Config(classes=specs)
+    with pytest.raises(ConfigError, match=re.escape(message) + ".*rename a mesh file"):
+        TouchParticleFilter(config, Ctx(tmp_path))
 
 
 @pytest.mark.parametrize(

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import statistics
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -79,10 +80,30 @@ def select_touch_objects(selection: Sequence[str]) -> list[tuple[str, bool]]:
     return out
 
 
+def object_folder(obj: str) -> str:
+    """The runs' folder name of an object: a library name as is, a mesh path's file stem;
+    characters other than letters, digits, ``_``, ``-`` and inner dots become ``_``."""
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", Path(obj).stem).strip(".")
+    return name or "object"
+
+
+def check_object_folders(objects: Sequence[str]) -> None:
+    """ConfigError when two different objects would share a runs folder (same file stem)."""
+    first: dict[str, str] = {}
+    for obj in objects:
+        owner = first.setdefault(object_folder(obj), obj)
+        if owner != obj:
+            raise ConfigError(
+                f"--objects: {owner} and {obj} would share the runs folder "
+                f"{object_folder(obj)!r} (a mesh file's folder is its file stem); "
+                "rename one of the files"
+            )
+
+
 def run_trial(options: TouchEvalOptions, obj: str, explorer: str, trial: int) -> dict[str, Any]:
     """Run the skill once (reusing a finished run with the same arguments): the record of
     ``touch_errors`` and the run's wall time."""
-    run_dir = options.out / "runs" / explorer / obj / f"trial_{trial:02d}"
+    run_dir = options.out / "runs" / explorer / object_folder(obj) / f"trial_{trial:02d}"
     args = ["-q", "run", str(options.skill), "--out", str(run_dir), "--overwrite",
             "--seed", str(options.seed + trial),
             "--set", f"components.probe.with.object={obj}",
@@ -130,6 +151,7 @@ def evaluate_touch(options: TouchEvalOptions) -> dict[str, Any]:
     if options.trials < 1:
         raise ConfigError(f"--trials must be at least 1, got {options.trials}")
     objects = select_touch_objects(options.objects)
+    check_object_folders([obj for obj, _ in objects])
     records = [
         {"explorer": explorer, "object": obj, "is_known": known, "trial": trial}
         | run_trial(options, obj, explorer, trial)

@@ -131,7 +131,8 @@ def save_learned_shape(
     surface: SurfaceMesh, directory: Path, name: str, world_from_object: FloatArray
 ) -> Path:
     """Save a reconstruction (world frame) in the object frame ``world_from_object`` [4, 4] as
-    a watertight .ply under ``directory`` (created); returns the file's path.
+    a watertight .ply under ``directory`` (created); returns the file's absolute path (as
+    it can be listed in ``touch.pf``'s classes from anywhere).
 
     Raises DataError when the surface is not watertight (it could not serve as a class).
     """
@@ -141,7 +142,7 @@ def save_learned_shape(
     vertices_m = (surface.vertices_m - pose[:3, 3]) @ pose[:3, :3]
     mesh = make_mesh(name, vertices_m, surface.triangles, f"learned:{name}", size_m=None)
     directory.mkdir(parents=True, exist_ok=True)
-    path = available_path(directory, name)
+    path = available_path(directory, name).resolve()
     save_mesh(mesh, path)
     log.info("saved the learned shape %s (%d triangles) to %s", name, len(mesh.triangles), path)
     return path

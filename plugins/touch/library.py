@@ -4,7 +4,8 @@ Each shape is a signed-distance field built from primitives (revolved profiles, 
 tori, spheres, capsules; union = min, smoothed where parts meet), sampled on a grid and turned
 into a watertight mesh by marching cubes, then scaled so that its largest extent is 0.2 m.
 Shapes are rebuilt from this code on first use (about 0.1 s each) and kept in memory; nothing
-generated is stored on disk. Any mesh file becomes a class with :func:`load_class`.
+generated is stored on disk. Any mesh file becomes a class with :func:`load_class`, read as
+saved (metres, its own object frame; not rescaled or re-centred), like the learned shapes.
 """
 
 from __future__ import annotations
@@ -314,14 +315,30 @@ def novel_classes() -> dict[str, Mesh]:
     return {name: novel_class(name) for name in NOVEL}
 
 
+MESH_FILE_EXTENT_M = (0.01, 1.0)
+"""Largest extents (m) outside this range are logged as a likely unit mistake."""
+
+
 def load_class(path: Path | str) -> tuple[str, Mesh]:
-    """Any mesh file as a class: (its name = the file stem, the normalised mesh)."""
-    mesh = load_mesh(path)
+    """Any mesh file as a class: (its name = the file stem, the mesh as saved: metres, in
+    the file's own object frame, not normalised -- a learned shape keeps its size and frame)."""
+    path = Path(path)
+    mesh = load_mesh(path, size_m=None)
+    low, high = MESH_FILE_EXTENT_M
+    if not low <= float(mesh.extent_m.max()) <= high:
+        log.warning("%s is %.3g m across; mesh files are read in metres as saved (is it in "
+                    "mm or cm?)", path, float(mesh.extent_m.max()))  # fmt: skip
     return mesh.name, mesh
 
 
+def shape_name(spec: str) -> str:
+    """The class name ``spec`` resolves to: a library name as is, a mesh file's stem."""
+    return spec if spec in KNOWN or spec in NOVEL else Path(spec).stem
+
+
 def resolve_shape(spec: str, base: Path | None = None) -> Mesh:
-    """A known class, a novel variant or a mesh file path (relative to ``base``)."""
+    """A known class or novel variant (largest extent 0.2 m, centred), or a mesh file path
+    (relative to ``base``) read as saved by :func:`load_class`."""
     if spec in KNOWN:
         return known_class(spec)
     if spec in NOVEL:
@@ -330,7 +347,7 @@ def resolve_shape(spec: str, base: Path | None = None) -> Mesh:
     if base is not None and not path.is_absolute():
         path = base / path
     if path.suffix:
-        return load_mesh(path)
+        return load_class(path)[1]
     raise DataError(
         f"{spec!r} is neither a library shape ({', '.join([*KNOWN, *NOVEL])}) nor a mesh file"
     )

@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl")
 DEFAULT_SIZE_M = 0.2
-"""Largest bounding-box extent every class is scaled to."""
+"""Largest bounding-box extent every library class is scaled to."""
 
 IntArray = NDArray[np.int64]
 
@@ -267,18 +267,10 @@ def make_mesh(
 
 
 def load_mesh(path: Path | str, size_m: float | None = DEFAULT_SIZE_M) -> Mesh:
-    """Read a .obj/.ply/.off/.stl file into a validated, normalised :class:`Mesh` named after
-    the file's stem."""
-    import open3d as o3d
-
+    """Read a .obj/.ply/.off/.stl file into a validated :class:`Mesh` named after the file's
+    stem: normalised to ``size_m``, or as saved (m, its own frame) when ``size_m`` is None."""
     path = Path(path)
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise DataError(f"{path}: unsupported mesh format; use one of {', '.join(MESH_SUFFIXES)}")
-    if not path.is_file():
-        raise DataError(f"{path}: no such mesh file")
-    legacy = o3d.io.read_triangle_mesh(path)
-    legacy.remove_duplicated_vertices()
-    legacy.remove_unreferenced_vertices()
+    legacy = _read_legacy(path)
     return make_mesh(
         path.stem,
         np.asarray(legacy.vertices, dtype=np.float64),
@@ -286,6 +278,27 @@ def load_mesh(path: Path | str, size_m: float | None = DEFAULT_SIZE_M) -> Mesh:
         str(path),
         size_m,
     )
+
+
+def _read_legacy(path: Path) -> Any:
+    """The open3d triangle mesh in ``path``, duplicated and unreferenced vertices removed;
+    DataError for an unsupported suffix, a missing file or a file with no triangles in it."""
+    import open3d as o3d
+
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise DataError(f"{path}: unsupported mesh format; use one of {', '.join(MESH_SUFFIXES)}")
+    if not path.is_file():
+        raise DataError(f"{path}: no such mesh file")
+    legacy = o3d.io.read_triangle_mesh(path)
+    if not (legacy.has_vertices() and legacy.has_triangles()):
+        raise DataError(
+            f"{path}: could not be read as a mesh (the file is corrupt, empty or not a "
+            f"{path.suffix.lower()} triangle mesh): {len(legacy.vertices)} vertices and "
+            f"{len(legacy.triangles)} triangles read"
+        )
+    legacy.remove_duplicated_vertices()
+    legacy.remove_unreferenced_vertices()
+    return legacy
 
 
 def save_mesh(mesh: Mesh, path: Path | str) -> None:

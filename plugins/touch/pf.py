@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -26,7 +27,7 @@ from scipy.spatial.transform import Rotation
 from scipy.special import log_ndtr
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import ConfigError
-from vistac.plugins.touch.library import KNOWN, resolve_shape
+from vistac.plugins.touch.library import KNOWN, resolve_shape, shape_name
 from vistac.plugins.touch.meshes import GridSDF, Mesh, apply_pose, transform_sdf
 from vistac.plugins.touch.ppf import PpfTable, Quantisation, align_pairs, point_pair_features
 from vistac.plugins.touch.types import MlePrior
@@ -126,7 +127,10 @@ class TouchParticleFilter(Component):
     class Config(ComponentConfig):
         classes: list[str] = Field(
             default_factory=lambda: list(KNOWN),
-            description="known classes: library names or mesh file paths",
+            description="known classes: library names (0.2 m across, centred) or mesh file "
+            "paths, read as saved (metres, the file's own object frame, as learn_shape saves "
+            "them; not rescaled). A class is named by its library name or file stem; the names "
+            "must be unique",
         )
         feature_points: int = Field(200, ge=10, description="Poisson-disk samples per class")
         distance_step_m: float = Field(0.015, gt=0, description="PPF distance bin")
@@ -166,6 +170,7 @@ class TouchParticleFilter(Component):
         super().__init__(config, ctx)
         if not config.classes:
             raise ConfigError("touch.pf needs at least one known class")
+        _check_unique_names(config.classes)
         self._rng = ctx.rng("touch_pf")
         quantisation = Quantisation(config.distance_step_m, np.deg2rad(config.angle_step_deg))
         start_s = time.perf_counter()
@@ -466,6 +471,22 @@ class TouchParticleFilter(Component):
             result["mle_surface_m"] = apply_pose(pose, shape.surface)
             result["mle_surface_normals"] = shape.surface_normals @ pose[:3, :3].T
         return result
+
+
+def _check_unique_names(specs: list[str]) -> None:
+    """ConfigError naming the class specs that resolve to the same class name (the class
+    probabilities are keyed by name)."""
+    first: dict[str, str] = {}
+    for spec in specs:
+        name = shape_name(spec)
+        if name in first:
+            suffix = Path(spec).suffix or Path(first[name]).suffix or ".ply"
+            raise ConfigError(
+                f"touch.pf classes {first[name]!r} and {spec!r} are both named {name!r} (a "
+                "mesh file's class name is its file stem); list each class once and rename "
+                f"a mesh file whose stem repeats another class's name, e.g. to {name}_2{suffix}"
+            )
+        first[name] = spec
 
 
 def _feature_samples(mesh: Mesh, count: int) -> tuple[FloatArray, FloatArray]:
