@@ -57,8 +57,9 @@ def render(rows: list[Row], repeats: int) -> str:
         "# Benchmarks",
         "",
         f"Machine: {machine()}. Date: {datetime.date.today().isoformat()}. "
-        f"Each figure is the median of {repeats} repeats after a warm-up; peers are measured in "
-        "the same run. Regenerate with `make bench`.",
+        f"Each figure is the median of {repeats} repeats after a warm-up unless its note gives "
+        "another count; peers are measured in the same run unless the peer says otherwise. "
+        "Regenerate with `make bench`.",
         "",
         "| benchmark | vistac | target | met | peer (same run) | note |",
         "|---|---|---|---|---|---|",
