@@ -296,7 +296,10 @@ class Open3dCloudProcessor(Component):
         transform, rmse_before_m, rmse_after_m = icp_align(
             source, target, np.concatenate(self._view_normals), config.icp_max_distance_m
         )
-        correction_m = float(np.linalg.norm(transform[:3, 3]))
+        # How far the correction moves the points: the transform's translation is about the
+        # world origin, where a small turn about the object counts its lever arm too.
+        moved = source @ transform[:3, :3].T + transform[:3, 3] - source
+        correction_m = float(np.linalg.norm(moved, axis=1).max())
         gain = 1.0 - rmse_after_m / rmse_before_m if rmse_before_m > 0 else 0.0
         if gain < config.icp_min_rmse_gain or correction_m > config.icp_max_correction_m:
             # Already aligned (ICP would only fit the noise, sliding along flat faces) or
