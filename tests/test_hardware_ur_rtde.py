@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import signal
 import threading
@@ -282,3 +283,139 @@ def test_silent_controller_does_not_hang_the_connection(
     with pytest.raises(HardwareError, match=r"does not answer or stream RTDE data within 0\.5 s"):
         make_arm(plugins, tmp_path, emulator.host, connect_timeout_s=0.5)
     assert time.monotonic() - started < 1.5
+
+
+def test_watchdog_cannot_be_turned_off() -> None:
+    with pytest.raises(ValueError, match="greater than 0"):
+        ur_arm.URArm.Config(watchdog_min_hz=0.0)
+
+
+def test_stop_after_a_stale_read_still_stops_the_arm(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    # one stale read marks the arm disconnected while the link still works
+    arm = make_arm(plugins, tmp_path, emulator.host, watchdog_min_hz=0.2)
+    try:
+        arm.command_velocity(np.array([0.02, 0.0, 0.0, 0.0]))
+        assert wait_for(lambda: emulator.state()["speed"][0] > 0.015)
+        emulator.silent(True)
+        with pytest.raises(HardwareError, match="no new RTDE data"):
+            assert wait_for(lambda: arm.state() is None)
+        emulator.silent(False)
+        assert not arm.connected
+        arm.stop()  # before the controller's watchdog (5 s) would stop the arm
+        assert wait_for(lambda: emulator.state()["speed"][0] == 0.0, timeout_s=0.5)
+    finally:
+        arm.close()
+
+
+@pytest.mark.parametrize(
+    ("bits", "condition"),
+    [
+        (1 | 1 << 4, "a safeguard stop"),
+        (1 | 1 << 6, "a robot emergency stop"),
+        (1 | 1 << 8, "a safety violation"),
+        (1 | 1 << 9, "a safety fault"),
+        (1 | 1 << 10, "a stop due to safety"),
+        (1 << 3, "neither normal nor reduced safety mode"),  # recovery mode
+        (0, "neither normal nor reduced safety mode"),
+    ],
+)
+def test_safety_conditions_are_named(bits: int, condition: str) -> None:
+    assert ur_arm.safety_condition(bits) == condition
+    assert ur_arm.safety_condition(1) is None and ur_arm.safety_condition(2) is None
+
+
+def test_safety_stops_refuse_motion(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    arm = make_arm(plugins, tmp_path, emulator.host)
+    try:
+        for bits, condition in ((1 | 1 << 4, "safeguard stop"), (1 | 1 << 10, "due to safety")):
+            emulator.set_safety_bits(bits)
+            wait_for(lambda: arm._safety_bits() == bits)  # noqa: B023 (waited for here)
+            with pytest.raises(SafetyError, match=f"{condition}: motion refused"):
+                arm.command_velocity(np.array([0.02, 0.0, 0.0, 0.0]))
+            with pytest.raises(SafetyError, match=condition):
+                arm.move_to(np.array([0.0, 0.46, 0.15, 0.0]))
+        assert 10 not in emulator.state()["commands"] and 3 not in emulator.state()["commands"]
+    finally:
+        arm.close()
+
+
+def test_stop_halts_a_move(emulator: URControllerProcess, plugins: Plugins, tmp_path: Path) -> None:
+    arm = make_arm(plugins, tmp_path, emulator.host, move_timeout_margin_s=0.2)
+    errors: list[Exception] = []
+
+    def move() -> None:
+        try:
+            arm.move_to(np.array([0.02, 0.45, 0.15, 0.0]))  # 0.8 s at 25 mm/s
+        except HardwareError as exc:
+            errors.append(exc)
+
+    mover = threading.Thread(target=move)
+    try:
+        mover.start()
+        assert wait_for(lambda: emulator.state()["pose"][0] > 0.003)
+        arm.stop()
+        assert wait_for(lambda: emulator.state()["speed"][0] == 0.0, timeout_s=0.3)
+        stopped_x = emulator.state()["pose"][0]
+        time.sleep(0.2)
+        assert emulator.state()["pose"][0] == stopped_x < 0.015
+        mover.join(3.0)
+        assert errors and "did not reach" in str(errors[0])
+    finally:
+        mover.join(3.0)
+        arm.close()
+
+
+def test_the_arm_brakes_before_the_workspace_wall(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    x_max_m = 0.10
+    arm = make_arm(
+        plugins, tmp_path, emulator.host, max_speed_mps=0.25, workspace_max_m=[x_max_m, 0.85, 0.5]
+    )
+    peak_x_m = -1.0
+    try:
+        started = time.monotonic()
+        while time.monotonic() - started < 1.5:  # a 15 Hz control loop at full speed to +x
+            with contextlib.suppress(SafetyError):  # at the wall
+                arm.command_velocity(np.array([0.25, 0.0, 0.0, 0.0]))
+            next_s = time.monotonic() + 1 / 15
+            while time.monotonic() < next_s:
+                peak_x_m = max(peak_x_m, emulator.state()["pose"][0])
+                time.sleep(0.005)
+        assert x_max_m - 0.01 < peak_x_m < x_max_m + 2e-4
+    finally:
+        arm.stop()
+        arm.close()
+
+
+def test_data_that_stopped_during_an_idle_gap_is_stale(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    arm = make_arm(plugins, tmp_path, emulator.host)
+    try:
+        arm.state()
+        time.sleep(0.5)  # idle: nobody polls while the data still flows
+        emulator.silent(True)
+        time.sleep(0.5)
+        with pytest.raises(HardwareError, match=r"no new RTDE data for [45]\d\d ms"):
+            arm.state()
+        emulator.silent(False)
+        arm.reconnect()
+        assert time.monotonic() - arm.state().timestamp_s < 0.05
+    finally:
+        arm.close()
+
+
+def test_move_to_returns_once_the_yaw_is_reached(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    arm = make_arm(plugins, tmp_path, emulator.host)
+    try:
+        arm.move_to(np.array([0.0, 0.45, 0.15, 0.5]))  # a turn in place, 0.5 s
+        assert arm.state().pose[3] == pytest.approx(0.5, abs=2e-3)
+    finally:
+        arm.close()

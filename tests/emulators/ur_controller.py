@@ -12,15 +12,17 @@ It speaks the three interfaces ``RTDEControlInterface`` / ``RTDEReceiveInterface
   handshake (``output_int_register_0``: 1 = ready for a command, 2 = done with it).
 
 Commands are read from ``input_int_register_0`` with their arguments in the input double
-registers, as the uploaded script reads them: 3 moveL, 10 speedL, 15 speedStop, 33 stopL,
-35 setWatchdog, 255 stop script (other codes are acknowledged and ignored). The TCP pose is
+registers, as the uploaded script reads them: 3 moveL, 10 speedL, 15 speedStop (ends speed
+mode only), 33 stopL (ends a moveL too), 35 setWatchdog, 255 stop script (other codes are
+acknowledged and ignored). The TCP pose is
 integrated from the commanded velocity (with the commanded acceleration) at 125 Hz.
 
 The controller reports PolyScope 3.15 (a CB3: 125 Hz, no remote-control check). It runs in
 its own process (``URControllerProcess``, multiprocessing spawn) bound to its own loopback
 address 127.0.0.N, because the client's constructors block without releasing the GIL. Tests
 steer it through a pipe: inject a protective stop, drop every connection (and refuse new
-ones), go silent (connections stay open, nothing is sent), set the TCP force, read the state.
+ones), go silent (connections stay open, nothing is sent), set the TCP force, override the
+safety status bits, read the state.
 """
 
 from __future__ import annotations
@@ -48,6 +50,8 @@ SCRIPT_PORTS = (30002, 30003)
 CONTROLLER_VERSION = (3, 15, 7, 106331)
 POLYSCOPE_VERSION = "URSoftware 3.15.7.106331 (Mar 04 2022)"
 PHYSICS_RATE_HZ = 125.0
+MOVE_TURN_RATE_RAD_S = 1.0
+"""How fast a moveL turns the tool (it moves at the commanded speed)."""
 
 CMD_NONE, CMD_MOVEL, CMD_SPEEDL, CMD_SPEED_STOP = 0, 3, 10, 15
 CMD_WATCHDOG_KICK, CMD_STOPL, CMD_SET_WATCHDOG, CMD_STOP_SCRIPT = 24, 33, 35, 255
@@ -121,10 +125,13 @@ class ArmSim:
     move_target: np.ndarray | None = None
     move_start: np.ndarray | None = None
     move_speed_mps: float = 0.0
+    move_progress: float = 0.0
     move_sync: bool = False
     program_running: bool = False
     script_state: int = 0
     protective_stop: bool = False
+    safety_bits: int | None = None
+    """Reported ``safety_status_bits`` instead of those of ``protective_stop``."""
     watchdog_hz: float = 0.0
     last_input_s: float = 0.0
     watchdog_trips: int = 0
@@ -162,23 +169,28 @@ class ArmSim:
         self.pose[3:] = matrix_to_rotvec(rotation)
 
     def _step_move(self, dt_s: float) -> None:
+        """Along the straight line and the shortest turn, both ending together."""
         assert self.move_target is not None and self.move_start is not None
-        delta = self.move_target[:3] - self.pose[:3]
-        distance = float(np.linalg.norm(delta))
-        travel = self.move_speed_mps * dt_s
-        if distance <= travel:
+        start = rotvec_to_matrix(self.move_start[3:])
+        turn = matrix_to_rotvec(rotvec_to_matrix(self.move_target[3:]) @ start.T)
+        shift = self.move_target[:3] - self.move_start[:3]
+        duration_s = max(
+            float(np.linalg.norm(shift)) / self.move_speed_mps,
+            float(np.linalg.norm(turn)) / MOVE_TURN_RATE_RAD_S,
+            dt_s,
+        )
+        self.move_progress = min(self.move_progress + dt_s / duration_s, 1.0)
+        if self.move_progress >= 1.0:
             self.pose[:] = self.move_target
             self.speed[:] = 0.0
             self.move_target = None
             if self.move_sync:
                 self.script_state = DONE
             return
-        self.speed[:3] = delta / distance * self.move_speed_mps
-        self.speed[3:] = 0.0
-        self.pose[:3] += self.speed[:3] * dt_s
-        total = float(np.linalg.norm(self.move_target[:3] - self.move_start[:3])) or 1.0
-        done = 1.0 - (distance - travel) / total
-        self.pose[3:] = (1 - done) * self.move_start[3:] + done * self.move_target[3:]
+        self.speed[:3] = shift / duration_s
+        self.speed[3:] = turn / duration_s
+        self.pose[:3] = self.move_start[:3] + self.move_progress * shift
+        self.pose[3:] = matrix_to_rotvec(rotvec_to_matrix(self.move_progress * turn) @ start)
 
     def execute(self, values: dict[str, Any], now_s: float) -> None:
         """Play the control script's part for one input package."""
@@ -208,14 +220,16 @@ class ArmSim:
             self.speed_target = np.zeros(6)
             self.move_start = self.pose.copy()
             self.move_target = np.array(doubles[:6])
+            self.move_progress = 0.0
             self.move_speed_mps = max(float(doubles[6]), 1e-4)
             self.move_sync = async_flag == 0
             if self.move_sync:
                 self.script_state = 0  # busy until the move ends
         elif cmd in (CMD_SPEED_STOP, CMD_STOPL):
-            self.halt()
+            if cmd == CMD_STOPL:
+                self.halt()
             self.speed_target = np.zeros(6)
-            self.acceleration = max(float(doubles[0]), 1e-3) if cmd == CMD_STOPL else 10.0
+            self.acceleration = max(float(doubles[0]), 1e-3)
         elif cmd == CMD_SET_WATCHDOG:
             self.watchdog_hz = float(doubles[0])
         elif cmd == CMD_STOP_SCRIPT:
@@ -237,12 +251,17 @@ class ArmSim:
             "safety_status": 3 if self.protective_stop else 1,
             "runtime_state": 2 if self.program_running else 1,
             "robot_status_bits": 1 | (2 if self.program_running else 0),
-            "safety_status_bits": 4 if self.protective_stop else 1,
+            "safety_status_bits": self._safety_status_bits(),
             "output_int_register_0": self.script_state,
             "speed_scaling": 1.0,
             "target_speed_fraction": 1.0,
         }
         return values
+
+    def _safety_status_bits(self) -> int:
+        if self.safety_bits is not None:
+            return self.safety_bits
+        return 4 if self.protective_stop else 1
 
 
 class RTDESession:
@@ -512,6 +531,9 @@ class URControllerEmulator:
             self.listen()
         elif name == "silent":
             (self.silent.set if args[0] else self.silent.clear)()
+        elif name == "safety_bits":
+            with self.lock:
+                self.arm.safety_bits = args[0]
         elif name == "set_force":
             with self.lock:
                 self.arm.force = np.array(args[0], dtype=np.float64)
@@ -596,6 +618,10 @@ class URControllerProcess:
 
     def silent(self, on: bool) -> None:
         self.request("silent", on)
+
+    def set_safety_bits(self, bits: int | None) -> None:
+        """Report ``bits`` as ``safety_status_bits`` (None: those of the protective stop)."""
+        self.request("safety_bits", bits)
 
     def set_force(self, wrench: list[float]) -> None:
         self.request("set_force", wrench)

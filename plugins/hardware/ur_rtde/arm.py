@@ -7,14 +7,21 @@ Same protocol, config fields and workspace semantics as ``sim.arm``: velocity st
 Safety, checked before every command:
 
 - connection and freshness. The library's getters keep returning the last value after the
-  connection drops, and ``isConnected`` lags, so the RTDE ``timestamp`` must have advanced
-  within ``max_data_age_s`` (local ``time.monotonic`` clock, the one ``WallClock`` uses).
-  Stale data or a lost connection raises ``HardwareError`` and marks the arm disconnected
-  until ``reconnect()``.
-- protective / emergency stop: motion is refused with ``SafetyError`` until a person clears
-  it on the pendant (or the dashboard's ``unlock protective stop``); the plugin never clears
-  it. ``speedL`` reports success during a protective stop, so the safety bits are read
-  before each command rather than trusting the return value.
+  connection drops, and ``isConnected`` lags, so the age of the latest RTDE sample must be
+  under ``max_data_age_s``. Its age is measured on the local ``time.monotonic`` clock (the one
+  ``WallClock`` uses) through the offset between that clock and the RTDE ``timestamp``, so
+  data that stopped during an idle gap counts as old. Stale data or a lost connection raises
+  ``HardwareError`` and marks the arm disconnected until ``reconnect()``.
+- protective, safeguard and emergency stops, safety faults and violations, and any safety mode
+  but normal or reduced: motion is refused with ``SafetyError`` until a person clears it on
+  the pendant (or the dashboard's ``unlock protective stop``); the plugin never clears it.
+  ``speedL`` reports success during a protective stop, so the safety bits are read before
+  each command rather than trusting the return value.
+- ``stop()`` sends ``speedStop`` and ``stopL`` (which ends an asynchronous ``moveL``) whenever
+  the interfaces exist, also after a stale read marked the arm disconnected.
+- near the workspace walls each velocity component towards a wall is limited so that the arm
+  can stop within the remaining distance (``lookahead_s`` of reaction, then
+  ``acceleration_mps2``).
 - connecting: ``probe_controller`` first checks, with timeouts, that the controller streams
   RTDE data, because the library's constructors hold the GIL while they wait (forever for a
   controller that accepts connections but sends nothing) and no deadline can stop them.
@@ -48,10 +55,23 @@ log = logging.getLogger(__name__)
 
 _BOUNDARY_TOLERANCE_M = 1e-4
 _ARRIVED_M = 2e-4
+_ARRIVED_RAD = 2e-3
+_CLOCK_DRIFT = 1e-3
+"""How fast (s/s) the RTDE clock offset may grow: follows a controller clock running slow."""
 _MOVE_POLL_S = 0.01
 _DISCONNECT_TIMEOUT_S = 2.0
 _PROTECTIVE_STOP_BIT = 1 << 2
-_EMERGENCY_STOP_BITS = (1 << 5) | (1 << 7)
+_NORMAL_OR_REDUCED_BITS = (1 << 0) | (1 << 1)
+_SAFETY_STOPS = (  # RTDE safety_status_bits that refuse motion, as the RTDE guide numbers them
+    (2, "a protective stop"),
+    (5, "a system emergency stop"),
+    (6, "a robot emergency stop"),
+    (7, "an emergency stop"),
+    (4, "a safeguard stop"),
+    (9, "a safety fault"),
+    (8, "a safety violation"),
+    (10, "a stop due to safety"),
+)
 RECEIVE_VARIABLES = [
     "timestamp",
     "actual_TCP_pose",
@@ -77,14 +97,15 @@ class URArm(Component):
         acceleration_mps2: float = Field(default=0.5, gt=0.0, le=2.0)
         stop_deceleration_mps2: float = Field(default=2.0, gt=0.0, le=10.0)
         lookahead_s: float = Field(default=0.1, gt=0.0, le=1.0)
-        """Velocity components are limited so that the TCP stays in the box for this long."""
+        """Reaction time near the walls (at least the control period): velocity components
+        are limited so that the TCP, moving this long and then braking, stays in the box."""
         max_data_age_s: float = Field(default=0.1, gt=0.0)
         """Older RTDE data means the connection is lost."""
         command_timeout_s: float = Field(default=0.3, gt=0.0)
         connect_timeout_s: float = Field(default=10.0, gt=0.0)
         move_timeout_margin_s: float = Field(default=2.0, gt=0.0)
-        watchdog_min_hz: float = Field(default=2.0, ge=0.0)
-        """RTDE watchdog: the controller stops the arm without input this often (0: off)."""
+        watchdog_min_hz: float = Field(default=2.0, gt=0.0)
+        """RTDE watchdog: the controller stops the arm without input this often."""
         upload_script: bool = True
         """Upload ur_rtde's control script (False: an ExternalControl/custom program runs)."""
 
@@ -96,11 +117,12 @@ class URArm(Component):
         self._control: Any = None
         self._receive: Any = None
         self._lock = threading.Lock()
+        """Held while a command runs on the current control interface."""
         self._connected = False
         self._streaming = False
         self._closed = threading.Event()
-        self._last_rtde_s = -1.0
-        self._last_fresh_s = 0.0
+        self._clock_offset_s = np.inf
+        self._offset_at_s = 0.0
         self.connect()
         threading.Thread(target=self._feed_watchdog, name="ur_rtde-watchdog", daemon=True).start()
 
@@ -122,15 +144,15 @@ class URArm(Component):
             return receive, control
 
         probe_controller(config.host, config.connect_timeout_s)
+        self._lock = threading.Lock()  # a command stuck on abandoned interfaces holds the old
         what = f"connecting to the UR controller at {config.host}"
         self._receive, self._control = call_with_deadline(
             open_interfaces, config.connect_timeout_s, what
         )
         self._connected = True
-        self._last_rtde_s, self._last_fresh_s = -1.0, time.monotonic()
+        self._clock_offset_s, self._offset_at_s = np.inf, time.monotonic()
         self._check_fresh()
-        if config.watchdog_min_hz > 0:
-            self._call(lambda c: c.setWatchdog(config.watchdog_min_hz), "setWatchdog")
+        self._call(lambda c: c.setWatchdog(config.watchdog_min_hz), "setWatchdog")
         self._streaming = False
         log.info("connected to the UR controller at %s", config.host)
 
@@ -178,8 +200,9 @@ class URArm(Component):
             "then reconnect"
         )
 
-    def _check_fresh(self) -> None:
-        """Raise HardwareError unless the connection is up and the RTDE timestamp advances."""
+    def _check_fresh(self) -> float:
+        """Raise HardwareError unless the connection is up and the latest RTDE sample is
+        younger than ``max_data_age_s``; returns when that sample was taken (monotonic s)."""
         if not self._connected or self._receive is None:
             raise self._lost("not connected")
         receive = self._receive
@@ -187,9 +210,8 @@ class URArm(Component):
             receive.getTimestamp, self.config.command_timeout_s, "RTDE getTimestamp"
         )
         now_s = time.monotonic()
-        if timestamp_s != self._last_rtde_s:
-            self._last_rtde_s, self._last_fresh_s = timestamp_s, now_s
-        age_s = now_s - self._last_fresh_s
+        sampled_s = self._local_time_s(float(timestamp_s), now_s)
+        age_s = now_s - sampled_s
         if age_s > self.config.max_data_age_s:
             raise self._lost(
                 f"no new RTDE data for {age_s * 1e3:.0f} ms "
@@ -197,13 +219,30 @@ class URArm(Component):
             )
         if not receive.isConnected():
             raise self._lost("the RTDE connection closed")
+        return sampled_s
 
-    def _call(self, command: Any, what: str, timeout_s: float | None = None) -> Any:
+    def _local_time_s(self, timestamp_s: float, now_s: float) -> float:
+        """Local monotonic time of the RTDE sample stamped ``timestamp_s`` (controller clock).
+
+        The clock offset is the smallest ``now_s - timestamp_s`` seen (the sample that came
+        with the least delay), allowed to grow by ``_CLOCK_DRIFT`` per second."""
+        drift_s = _CLOCK_DRIFT * (now_s - self._offset_at_s)
+        self._clock_offset_s = min(self._clock_offset_s + drift_s, now_s - timestamp_s)
+        self._offset_at_s = now_s
+        return timestamp_s + self._clock_offset_s
+
+    def _call(self, command: Any, what: str) -> Any:
         """Run ``command(control_interface)`` with a deadline; a timeout disconnects."""
         if not self._connected or self._control is None:
             raise self._lost("not connected")
-        control = self._control
-        deadline_s = timeout_s or self.config.command_timeout_s
+        try:
+            return self._run(self._control, command, what)
+        except HardwareError as exc:
+            raise self._lost(str(exc)) from exc
+
+    def _run(self, control: Any, command: Any, what: str) -> Any:
+        """Run ``command(control)`` alone on the interface within ``command_timeout_s``."""
+        deadline_s = self.config.command_timeout_s
 
         def locked() -> Any:
             if not self._lock.acquire(timeout=deadline_s):
@@ -215,10 +254,7 @@ class URArm(Component):
             finally:
                 self._lock.release()
 
-        try:
-            return call_with_deadline(locked, deadline_s, f"{what} on the UR arm")
-        except HardwareError as exc:
-            raise self._lost(str(exc)) from exc
+        return call_with_deadline(locked, deadline_s, f"{what} on the UR arm")
 
     # --- safety ------------------------------------------------------------------------------
     def _safety_bits(self) -> int:
@@ -226,13 +262,13 @@ class URArm(Component):
 
     def _refuse_if_stopped(self) -> None:
         bits = self._safety_bits()
-        if bits & (_PROTECTIVE_STOP_BIT | _EMERGENCY_STOP_BITS):
-            kind = "protective" if bits & _PROTECTIVE_STOP_BIT else "emergency"
+        condition = safety_condition(bits)
+        if condition is not None:
             self._streaming = False
             raise SafetyError(
-                f"UR arm is in a {kind} stop: motion refused. A person must clear it on the "
+                f"UR arm is in {condition}: motion refused. A person must clear it on the "
                 "pendant (or the dashboard's 'unlock protective stop') before the skill is run "
-                "again"
+                f"again (safety status bits {bits:#x})"
             )
 
     def _limit_to_workspace(self, velocity_mps: FloatArray, position_m: FloatArray) -> FloatArray:
@@ -243,15 +279,23 @@ class URArm(Component):
         if reason is not None:
             self.stop()
             raise SafetyError(f"arm motion refused: it would leave the workspace ({reason})")
-        lookahead_s = self.config.lookahead_s
-        highest = (self._high - position_m) / lookahead_s
-        lowest = (self._low - position_m) / lookahead_s
-        return np.clip(velocity_mps, np.minimum(lowest, 0.0), np.maximum(highest, 0.0))
+        highest = self._stoppable_speed_mps(self._high - position_m)
+        lowest = -self._stoppable_speed_mps(position_m - self._low)
+        return np.clip(velocity_mps, lowest, highest)
+
+    def _stoppable_speed_mps(self, distance_m: FloatArray) -> FloatArray:
+        """Per axis [3], the speed from which the arm stops within ``distance_m`` (0 where it
+        is negative): ``lookahead_s`` at that speed until the next command, then braking at
+        ``acceleration_mps2``; solves v t + v^2 / (2 a) = d."""
+        reaction_s, acceleration = self.config.lookahead_s, self.config.acceleration_mps2
+        distance = np.maximum(distance_m, 0.0)
+        return acceleration * (np.sqrt(reaction_s**2 + 2.0 * distance / acceleration) - reaction_s)
 
     # --- Arm protocol -----------------------------------------------------------------------
     def state(self) -> ArmState:
-        """TCP pose and twist; ``timestamp_s`` is when this RTDE sample arrived (monotonic)."""
-        self._check_fresh()
+        """TCP pose and twist; ``timestamp_s`` is when this RTDE sample was taken (local
+        monotonic clock)."""
+        sampled_s = self._check_fresh()
         receive = self._receive
         pose = np.asarray(receive.getActualTCPPose(), dtype=np.float64)
         speed = np.asarray(receive.getActualTCPSpeed(), dtype=np.float64)
@@ -259,7 +303,7 @@ class URArm(Component):
         return ArmState(
             pose=arm_pose(pose),
             twist=np.array([speed[0], speed[1], speed[2], speed[5]]),
-            timestamp_s=self._last_fresh_s,
+            timestamp_s=sampled_s,
             protective_stop=stopped,
         )
 
@@ -296,8 +340,9 @@ class URArm(Component):
 
         The target must be inside the workspace and the speed is capped. The move is started
         asynchronously and supervised here (freshness, protective stop, watchdog) until the
-        TCP is within ``_ARRIVED_M`` of the target; after its expected duration plus
-        ``move_timeout_margin_s`` the arm is stopped and ``HardwareError`` raised.
+        TCP is within ``_ARRIVED_M`` and ``_ARRIVED_RAD`` (yaw) of the target; after its
+        expected duration plus ``move_timeout_margin_s`` the arm is stopped and
+        ``HardwareError`` raised.
         """
         target = np.asarray(pose, dtype=np.float64)
         if target.shape != (4,) or not np.all(np.isfinite(target)):
@@ -321,49 +366,74 @@ class URArm(Component):
         if not self._call(lambda c: c.moveL(tcp, speed, acceleration, True), "moveL"):
             self._refuse_if_stopped()
             raise HardwareError("the UR controller refused moveL (is the control script running?)")
-        while not self._arrived(target[:3]):
+        while not self._arrived(target):
             if time.monotonic() > deadline_s:
                 self.stop()
                 raise HardwareError(f"moveL did not reach {target[:3].tolist()} in time")
             time.sleep(_MOVE_POLL_S)
 
-    def _arrived(self, target_m: FloatArray) -> bool:
-        """Supervise a move: fresh data, no protective stop; True once at ``target_m``."""
+    def _arrived(self, target: FloatArray) -> bool:
+        """Supervise a move: fresh data, no protective stop; True once at target [4]."""
         self._check_fresh()
         self._refuse_if_stopped()
-        position = np.asarray(self._receive.getActualTCPPose(), dtype=np.float64)[:3]
-        return float(np.linalg.norm(position - target_m)) < _ARRIVED_M
+        pose = arm_pose(np.asarray(self._receive.getActualTCPPose(), dtype=np.float64))
+        yaw_error_rad = (pose[3] - target[3] + np.pi) % (2.0 * np.pi) - np.pi
+        at_position = float(np.linalg.norm(pose[:3] - target[:3])) < _ARRIVED_M
+        return at_position and abs(yaw_error_rad) < _ARRIVED_RAD
 
     def stop(self) -> None:
-        """Stop all motion. Safe at any time, repeatedly, also when disconnected (then it only
-        logs: the controller's watchdog stops an arm that nobody talks to)."""
+        """Stop all motion: ``speedStop`` (streamed velocities), then ``stopL`` (a ``moveL``).
+        Safe at any time, repeatedly. Tried whenever the interfaces exist, also after the arm
+        was marked disconnected (a stale read while the link still works); a failure is
+        logged, and the controller's watchdog stops an arm that nobody talks to."""
         self._streaming = False
-        if not self._connected or self._control is None:
-            log.warning("UR arm stop() while disconnected: relying on the controller watchdog")
+        control = self._control
+        if control is None or not _still_connected(control):
+            log.warning("UR arm stop() without a connection: relying on the controller watchdog")
             return
         deceleration = self.config.stop_deceleration_mps2
-        try:
-            self._call(lambda c: c.speedStop(deceleration), "speedStop")
-        except HardwareError as exc:
-            log.error("UR arm stop failed: %s", exc)
+        for what, command in (
+            ("speedStop", lambda c: c.speedStop(deceleration)),
+            ("stopL", lambda c: c.stopL(deceleration)),
+        ):
+            try:
+                self._run(control, command, what)
+            except HardwareError as exc:
+                log.error("UR arm at %s: stop failed: %s", self.config.host, exc)
+                self._connected = False
 
     def close(self) -> None:
         self._closed.set()
-        if self._connected:
-            self.stop()
+        self.stop()
         self._connected = False
         self._abandon()
 
     def _feed_watchdog(self) -> None:
         """Kick the RTDE watchdog unless velocities are streamed (then the commands feed it:
         a control loop that stops commanding lets the controller stop the arm)."""
-        rate_hz = self.config.watchdog_min_hz
-        if rate_hz <= 0:
-            return
-        while not self._closed.wait(0.5 / rate_hz):
+        while not self._closed.wait(0.5 / self.config.watchdog_min_hz):
             if self._connected and not self._streaming:
                 with contextlib.suppress(HardwareError):  # reported by the next command
                     self._call(lambda c: c.kickWatchdog(), "kickWatchdog")
+
+
+def safety_condition(bits: int) -> str | None:
+    """The condition, named, under which RTDE ``safety_status_bits`` refuse motion, or None."""
+    for bit, condition in _SAFETY_STOPS:
+        if bits & (1 << bit):
+            return condition
+    if not bits & _NORMAL_OR_REDUCED_BITS:
+        return "neither normal nor reduced safety mode"
+    return None
+
+
+def _still_connected(interface: Any) -> bool:
+    """Whether the interface's connection is open (commands on a closed one block while
+    ur_rtde tries to reconnect)."""
+    try:
+        return bool(call_with_deadline(interface.isConnected, 0.1, "RTDE isConnected"))
+    except HardwareError:
+        return False
 
 
 def _disconnect(interface: Any) -> None:
