@@ -260,9 +260,11 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     from vistac.plugins.filters.train import load_preset, train
+    from vistac.recording import refuse_file_as_folder
 
     if not args.skill.is_file():
         raise ConfigError(f"{args.skill}: no such collection skill file")
+    refuse_file_as_folder(args.out)
     if args.selection is not None:
         return _train_active(args)
     active_only = [f"--{name.replace('_', '-')}" for name in ("rounds", "threshold", "per_round")

@@ -218,6 +218,8 @@ class ArmState:
     """Cartesian state of the tool centre point.
 
     pose: [4] = (x_m, y_m, z_m, yaw_rad); twist: [4] = (vx, vy, vz in m/s, wz in rad/s).
+    protective_stop: the controller refuses motion for safety (a protective, safeguard or
+    emergency stop, a safety fault or violation); a person must clear it.
     """
 
     pose: FloatArray

@@ -484,6 +484,16 @@ def test_training_data_without_validation_runs_is_refused_before_any_output(
     assert not out.exists()
 
 
+def test_an_out_that_is_a_file_is_named_before_any_output(tmp_path: Path) -> None:
+    out = tmp_path / "afile"
+    out.write_text("not a folder")
+    result = run_vistac("train", str(SKILLS / "collect_pushes.yaml"), "--out", str(out),
+                        "--preset", "tiny")  # fmt: skip
+    assert result.returncode == 2
+    assert f"--out: {out} is a file; give a folder" in result.stderr
+    assert out.read_text() == "not a folder"
+
+
 def test_a_missing_data_folder_is_named_before_any_output(tmp_path: Path) -> None:
     (tmp_path / "data" / "train").mkdir(parents=True)
     (tmp_path / "data" / "val").mkdir()

@@ -334,6 +334,7 @@ def test_safety_stops_refuse_motion(
         for bits, condition in ((1 | 1 << 4, "safeguard stop"), (1 | 1 << 10, "due to safety")):
             emulator.set_safety_bits(bits)
             wait_for(lambda: arm._safety_bits() == bits)  # noqa: B023 (waited for here)
+            assert arm.state().protective_stop  # any stop that refuses motion
             with pytest.raises(SafetyError, match=f"{condition}: motion refused"):
                 arm.command_velocity(np.array([0.02, 0.0, 0.0, 0.0]))
             with pytest.raises(SafetyError, match=condition):

@@ -60,7 +60,6 @@ _CLOCK_DRIFT = 1e-3
 """How fast (s/s) the RTDE clock offset may grow: follows a controller clock running slow."""
 _MOVE_POLL_S = 0.01
 _DISCONNECT_TIMEOUT_S = 2.0
-_PROTECTIVE_STOP_BIT = 1 << 2
 _NORMAL_OR_REDUCED_BITS = (1 << 0) | (1 << 1)
 _SAFETY_STOPS = (  # RTDE safety_status_bits that refuse motion, as the RTDE guide numbers them
     (2, "a protective stop"),
@@ -299,7 +298,7 @@ class URArm(Component):
         receive = self._receive
         pose = np.asarray(receive.getActualTCPPose(), dtype=np.float64)
         speed = np.asarray(receive.getActualTCPSpeed(), dtype=np.float64)
-        stopped = bool(self._safety_bits() & _PROTECTIVE_STOP_BIT)
+        stopped = safety_condition(self._safety_bits()) is not None
         return ArmState(
             pose=arm_pose(pose),
             twist=np.array([speed[0], speed[1], speed[2], speed[5]]),
