@@ -321,14 +321,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if not args.skill.is_file():
         raise ConfigError(f"{args.skill}: no such skill file")
     refuse_file_as_folder(args.out)
-    if is_touch_skill(args.skill):
+    kind = "touch" if is_touch_skill(args.skill) else "goal" if is_goal_skill(args.skill) else ""
+    _refuse_unused_eval_options(args, kind or "parameter")
+    if kind == "touch":
         return _eval_touch(args)
-    if is_goal_skill(args.skill):
+    if kind == "goal":
         return _eval_goal(args)
     options = EvalOptions(
         skill=args.skill, out=args.out, objects=tuple(args.objects),
-        checkpoints=args.checkpoints, models=parse_models(args.models),
-        variants=parse_variants(args.variants),
+        checkpoints=args.checkpoints, models=parse_models(args.models or DEFAULT_MODELS),
+        variants=parse_variants(args.variants or DEFAULT_VARIANTS),
         max_objects=args.max_objects, max_interactions=args.max_interactions, seed=args.seed,
         overrides=tuple(args.set), paired=args.paired,
     )  # fmt: skip
@@ -344,13 +346,43 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 1 if any(run["status"] == "failed" for run in skipped) else 0
 
 
+DEFAULT_MODELS = "gnn,ff,analytical"
+DEFAULT_VARIANTS = "a-gnn,u-gnn,r-gnn,a-ff,a-analytical,gnn-fixed"
+DEFAULT_TRIALS = 10
+DEFAULT_EXPLORERS = "dhd,rrt"
+_EVAL_OPTION_KINDS = {
+    "checkpoints": ("parameter",), "models": ("parameter",), "variants": ("parameter",),
+    "max_objects": ("parameter",), "max_interactions": ("parameter",), "paired": ("parameter",),
+    "trials": ("touch", "goal"), "explorers": ("touch",),
+}  # fmt: skip
+"""The skills (parameter estimation, touch, goal-push) each ``vistac eval`` option acts on."""
+
+
+def _refuse_unused_eval_options(args: argparse.Namespace, kind: str) -> None:
+    """ConfigError naming each option given that a ``kind`` skill's evaluation ignores."""
+    unused = [
+        f"--{name.replace('_', '-')} (only for {' and '.join(kinds)} skills)"
+        for name, kinds in _EVAL_OPTION_KINDS.items()
+        if kind not in kinds and getattr(args, name) not in (None, False)
+    ]
+    if unused:
+        raise ConfigError(
+            f"{args.skill} is a {kind} skill; its evaluation does not use {', '.join(unused)}; "
+            "leave them out"
+        )
+
+
+def _trials(args: argparse.Namespace) -> int:
+    return DEFAULT_TRIALS if args.trials is None else int(args.trials)
+
+
 def _eval_touch(args: argparse.Namespace) -> int:
     from vistac.plugins.touch.campaign import TouchEvalOptions, evaluate_touch, parse_explorers
 
     objects = ("known",) if args.objects == ["test"] else tuple(args.objects)
     options = TouchEvalOptions(
-        skill=args.skill, out=args.out, objects=objects, trials=args.trials,
-        explorers=parse_explorers(args.explorers),
+        skill=args.skill, out=args.out, objects=objects, trials=_trials(args),
+        explorers=parse_explorers(args.explorers or DEFAULT_EXPLORERS),
         seed=args.seed if args.seed is not None else 0, overrides=tuple(args.set),
     )  # fmt: skip
     _print_campaign(evaluate_touch(options), args.out, "explorer", "touch")
@@ -362,7 +394,7 @@ def _eval_goal(args: argparse.Namespace) -> int:
 
     objects = ("all",) if args.objects == ["test"] else tuple(args.objects)
     options = GoalEvalOptions(
-        skill=args.skill, out=args.out, objects=objects, trials=args.trials, seed=args.seed,
+        skill=args.skill, out=args.out, objects=objects, trials=_trials(args), seed=args.seed,
         overrides=tuple(args.set),
     )  # fmt: skip
     _print_campaign(evaluate_goal(options), args.out, "mode", "goal-push")
@@ -500,13 +532,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="a `vistac train` folder (default: the skill's checkpoints/)",
     )
     evaluate.add_argument(
-        "--models", default="gnn,ff,analytical",
-        help="comma-separated; evaluate only the variants of these process models",
+        "--models", default=None,
+        help=f"comma-separated; evaluate only the variants of these process models (default "
+        f"{DEFAULT_MODELS})",
     )  # fmt: skip
     evaluate.add_argument(
-        "--variants", default="a-gnn,u-gnn,r-gnn,a-ff,a-analytical,gnn-fixed",
+        "--variants", default=None,
         help="comma-separated model x action selector columns: a-gnn (info gain), u-gnn "
-        "(uniform), r-gnn (random), a-ff, a-analytical, gnn-fixed (no parameter estimation)",
+        "(uniform), r-gnn (random), a-ff, a-analytical, gnn-fixed (no parameter estimation); "
+        "default all",
     )  # fmt: skip
     evaluate.add_argument(
         "--max-objects", type=int, default=None, help="evaluate at most N objects"
@@ -522,11 +556,13 @@ def build_parser() -> argparse.ArgumentParser:
         "interactions (vistac replay) instead of their own: compared on the same pushes",
     )  # fmt: skip
     evaluate.add_argument(
-        "--trials", type=int, default=10,
-        help="touch and goal-push skills: trials per object (seeds SEED .. SEED + N - 1)",
+        "--trials", type=int, default=None,
+        help=f"touch and goal-push skills: trials per object (seeds SEED .. SEED + N - 1; "
+        f"default {DEFAULT_TRIALS})",
     )  # fmt: skip
     evaluate.add_argument(
-        "--explorers", default="dhd,rrt", help="touch skills: comma-separated, dhd and/or rrt"
+        "--explorers", default=None,
+        help=f"touch skills: comma-separated, dhd and/or rrt (default {DEFAULT_EXPLORERS})",
     )
     _add_skill_options(evaluate)
     evaluate.set_defaults(func=cmd_eval)

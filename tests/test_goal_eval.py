@@ -115,8 +115,10 @@ def test_only_goal_skills_take_the_goal_evaluation() -> None:
         (["--objects", "rect1,spoon"], "no object 'spoon'"),
         (["--objects", "rect1", "--trials", "0"], "--trials must be at least 1"),
         (["--objects", "rect1", "--set", "components.filter.with.sigma=3"], "is not valid"),
+        (["--objects", "rect1", "--paired", "--variants", "a-gnn"],
+         "does not use --variants (only for parameter skills), --paired"),
     ],
-    ids=["object", "trials", "override"],
+    ids=["object", "trials", "override", "parameter-options"],
 )
 def test_bad_options_are_clear_errors(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str], message: str

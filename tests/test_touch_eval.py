@@ -113,8 +113,9 @@ def test_objects_sharing_a_runs_folder_are_a_config_error(
         (["--explorers", "dhd,spiral"], "spiral is not one of dhd, rrt"),
         (["--trials", "0"], "--trials must be at least 1"),
         (["--set", "explore_touch.max_touches=3"], "is not valid"),
+        (["--max-objects", "2"], "is a touch skill; its evaluation does not use --max-objects"),
     ],
-    ids=["explorer", "trials", "override"],
+    ids=["explorer", "trials", "override", "parameter-options"],
 )
 def test_bad_options_are_clear_errors(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str], message: str
