@@ -14,8 +14,8 @@ from vistac.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
-_STAMP = "eval_args.json"
-"""The arguments and exit code of the finished run in a run folder."""
+STAMP = "eval_args.json"
+"""What a finished run in a run folder was asked for (its arguments), written when it ends."""
 INTERRUPTED_EXIT_CODE = 130
 """What a run stopped by Ctrl-C exits with (the Scheduler turns the interrupt into it)."""
 
@@ -39,18 +39,37 @@ def run_quietly(args: list[str]) -> tuple[int, str]:
     return code, printed.getvalue()
 
 
+def stamp_of(run_dir: Path) -> Any:
+    """The stamp of the finished run in ``run_dir`` (what it was asked for), or None when
+    there is none (never run, running, or failed where failures are not stamped)."""
+    stamp = run_dir / STAMP
+    if not (stamp.is_file() and (run_dir / "summary.json").is_file()):
+        return None
+    return json.loads(stamp.read_text(encoding="utf-8"))
+
+
+def set_stamp(run_dir: Path, value: Any) -> None:
+    """Stamp ``run_dir``'s run as finished with ``value``, or, with None, remove the stamp
+    before the folder's run is replaced (so that a run failing there is never reused as the
+    one stamped before)."""
+    stamp = run_dir / STAMP
+    if value is None:
+        stamp.unlink(missing_ok=True)
+    else:
+        stamp.write_text(json.dumps(value), encoding="utf-8")
+
+
 def run_once(args: list[str], run_dir: Path, who: str) -> tuple[int, dict[str, Any] | None]:
     """``vistac ARGS`` (a ``run`` writing to ``run_dir``) unless a finished run with the same
     arguments is there: (its exit code, its summary or None when it wrote none).
 
     ConfigError when the skill with these arguments is not valid: every other run of the
     campaign would fail the same way. KeyboardInterrupt when the run was interrupted."""
-    stamp, summary_path = run_dir / _STAMP, run_dir / "summary.json"
-    if stamp.is_file() and summary_path.is_file():
-        finished = json.loads(stamp.read_text(encoding="utf-8"))
-        if isinstance(finished, dict) and finished.get("args") == args:
-            return int(finished["exit_code"]), json.loads(summary_path.read_text("utf-8"))
-    stamp.unlink(missing_ok=True)  # this folder's run is about to be replaced
+    summary_path = run_dir / "summary.json"
+    finished = stamp_of(run_dir)
+    if isinstance(finished, dict) and finished.get("args") == args:
+        return int(finished["exit_code"]), json.loads(summary_path.read_text("utf-8"))
+    set_stamp(run_dir, None)
     code, printed = run_quietly(args)
     log.debug("%s", printed)
     if code == ConfigError.exit_code:
@@ -58,5 +77,5 @@ def run_once(args: list[str], run_dir: Path, who: str) -> tuple[int, dict[str, A
                           "above); fix the skill or the --set options")  # fmt: skip
     if not summary_path.is_file():
         return code, None
-    stamp.write_text(json.dumps({"args": args, "exit_code": code}), encoding="utf-8")
+    set_stamp(run_dir, {"args": args, "exit_code": code})
     return code, json.loads(summary_path.read_text(encoding="utf-8"))

@@ -706,60 +706,56 @@ def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
     """Run the skill for ``plan`` (reusing a finished run with the same arguments).
 
     KeyboardInterrupt when the run was interrupted: Ctrl-C stops the whole evaluation."""
-    from vistac.campaign import run_quietly
+    from vistac.campaign import run_quietly, set_stamp, stamp_of
 
     run_dir = run_dir_of(options.out, plan)
     args = ["-q", "run", str(options.skill), "--out", str(run_dir), "--overwrite"]
     args += ["--seed", str(options.seed)] if options.seed is not None else []
     for override in plan.overrides:
         args += ["--set", override]
-    stamp = run_dir / "eval_args.json"
-    done = (run_dir / "summary.json").is_file() and stamp.is_file()
-    if done and json.loads(stamp.read_text(encoding="utf-8")) == args:
+    if stamp_of(run_dir) == args:
         log.info("reusing %s", run_dir)
         return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0}
     log.info("running %s on %s", plan.variant.label, plan.spec.name)
-    stamp.unlink(missing_ok=True)  # a failed run here must not pass for the stamped one
+    set_stamp(run_dir, None)
     code, printed = run_quietly(args)
     log.debug("%s", printed)
     if code != 0:
         return {"status": "failed", "run_dir": str(run_dir), "exit_code": code,
                 "reason": f"the skill run exited with {code}; see {run_dir}"}  # fmt: skip
-    stamp.write_text(json.dumps(args), encoding="utf-8")
+    set_stamp(run_dir, args)
     return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0}
 
 
 def replay_run(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
     """Replay ``plan.lead``'s run with ``plan``'s overrides (reusing a finished replay of
     the same lead run: the lead's arguments and summary are part of the replay's stamp)."""
+    from vistac.campaign import set_stamp, stamp_of
     from vistac.pluginmanager import load_plugins
     from vistac.replay import replay
 
     assert plan.lead is not None
     source, run_dir = run_dir_of(options.out, plan.lead), run_dir_of(options.out, plan)
-    lead_stamp = source / "eval_args.json"
-    if not lead_stamp.is_file():  # written once a run has succeeded
+    lead = stamp_of(source)
+    if lead is None:  # stamped once a run has succeeded
         return {"status": "failed", "run_dir": str(run_dir), "exit_code": 1,
                 "reason": f"nothing to replay: {plan.lead.variant.label}'s run failed"}  # fmt: skip
     args = {
-        "replay": str(source), "overrides": plan.overrides,
-        "lead": json.loads(lead_stamp.read_text(encoding="utf-8")),
+        "replay": str(source), "overrides": plan.overrides, "lead": lead,
         "lead_summary": hashlib.sha256((source / "summary.json").read_bytes()).hexdigest(),
     }  # fmt: skip
-    stamp = run_dir / "eval_args.json"
-    done = (run_dir / "summary.json").is_file() and stamp.is_file()
-    if done and json.loads(stamp.read_text(encoding="utf-8")) == args:
+    if stamp_of(run_dir) == args:
         log.info("reusing %s", run_dir)
         return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0, "replay_of": str(source)}
     log.info("replaying %s's run on %s with %s", plan.lead.variant.label, plan.spec.name,
              plan.variant.label)  # fmt: skip
-    stamp.unlink(missing_ok=True)  # a failed replay here must not pass for the stamped one
+    set_stamp(run_dir, None)
     try:
         replay(source, run_dir, load_plugins(), list(plan.overrides), overwrite=True)
     except VistacError as error:
         return {"status": "failed", "run_dir": str(run_dir), "exit_code": error.exit_code,
                 "reason": f"replay failed: {error}"}  # fmt: skip
-    stamp.write_text(json.dumps(args), encoding="utf-8")
+    set_stamp(run_dir, args)
     return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0, "replay_of": str(source)}
 
 
