@@ -321,11 +321,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if not args.skill.is_file():
         raise ConfigError(f"{args.skill}: no such skill file")
     refuse_file_as_folder(args.out)
-    kind = "touch" if is_touch_skill(args.skill) else "goal" if is_goal_skill(args.skill) else ""
-    _refuse_unused_eval_options(args, kind or "parameter")
+    kind = "parameter-estimation"
+    if is_touch_skill(args.skill):
+        kind = "touch"
+    elif is_goal_skill(args.skill):
+        kind = "goal-push"
+    _refuse_unused_eval_options(args, kind)
     if kind == "touch":
         return _eval_touch(args)
-    if kind == "goal":
+    if kind == "goal-push":
         return _eval_goal(args)
     options = EvalOptions(
         skill=args.skill, out=args.out, objects=tuple(args.objects),
@@ -351,9 +355,10 @@ DEFAULT_VARIANTS = "a-gnn,u-gnn,r-gnn,a-ff,a-analytical,gnn-fixed"
 DEFAULT_TRIALS = 10
 DEFAULT_EXPLORERS = "dhd,rrt"
 _EVAL_OPTION_KINDS = {
-    "checkpoints": ("parameter",), "models": ("parameter",), "variants": ("parameter",),
-    "max_objects": ("parameter",), "max_interactions": ("parameter",), "paired": ("parameter",),
-    "trials": ("touch", "goal"), "explorers": ("touch",),
+    "checkpoints": ("parameter-estimation",), "models": ("parameter-estimation",),
+    "variants": ("parameter-estimation",), "max_objects": ("parameter-estimation",),
+    "max_interactions": ("parameter-estimation",), "paired": ("parameter-estimation",),
+    "trials": ("touch", "goal-push"), "explorers": ("touch",),
 }  # fmt: skip
 """The skills (parameter estimation, touch, goal-push) each ``vistac eval`` option acts on."""
 
@@ -368,7 +373,7 @@ def _refuse_unused_eval_options(args: argparse.Namespace, kind: str) -> None:
     if unused:
         raise ConfigError(
             f"{args.skill} is a {kind} skill; its evaluation does not use {', '.join(unused)}; "
-            "leave them out"
+            f"leave {'it' if len(unused) == 1 else 'them'} out"
         )
 
 

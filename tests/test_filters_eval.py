@@ -316,9 +316,9 @@ def test_eval_names_a_bad_prior(tmp_path: Path, capsys: pytest.CaptureFixture[st
         (["--max-objects", "-1"], "--max-objects: -1 is not a count"),
         (["--max-interactions", "0"], "--max-interactions: 0 is not a count"),
         (["--max-interactions", "-1"], "--max-interactions: -1 is not a count"),
-        (["--trials", "3", "--explorers", "dhd"], "is a parameter skill; its evaluation does "
-         "not use --trials (only for touch and goal skills), --explorers (only for touch "
-         "skills); leave them out"),
+        (["--trials", "3", "--explorers", "dhd"], "is a parameter-estimation skill; its "
+         "evaluation does not use --trials (only for touch and goal-push skills), --explorers "
+         "(only for touch skills); leave them out"),
     ],
     ids=["unknown-model", "missing-object", "unknown-variant", "no-variant-left", "empty",
          "no-objects", "objects-negative", "no-interactions", "interactions-negative",

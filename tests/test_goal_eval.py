@@ -116,7 +116,7 @@ def test_only_goal_skills_take_the_goal_evaluation() -> None:
         (["--objects", "rect1", "--trials", "0"], "--trials must be at least 1"),
         (["--objects", "rect1", "--set", "components.filter.with.sigma=3"], "is not valid"),
         (["--objects", "rect1", "--paired", "--variants", "a-gnn"],
-         "does not use --variants (only for parameter skills), --paired"),
+         "does not use --variants (only for parameter-estimation skills), --paired"),
     ],
     ids=["object", "trials", "override", "parameter-options"],
 )

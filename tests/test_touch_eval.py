@@ -113,7 +113,8 @@ def test_objects_sharing_a_runs_folder_are_a_config_error(
         (["--explorers", "dhd,spiral"], "spiral is not one of dhd, rrt"),
         (["--trials", "0"], "--trials must be at least 1"),
         (["--set", "explore_touch.max_touches=3"], "is not valid"),
-        (["--max-objects", "2"], "is a touch skill; its evaluation does not use --max-objects"),
+        (["--max-objects", "2"], "is a touch skill; its evaluation does not use --max-objects "
+         "(only for parameter-estimation skills); leave it out"),
     ],
     ids=["explorer", "trials", "override", "parameter-options"],
 )
