@@ -24,6 +24,7 @@ from vistac.plugins.touch.pf import (
 )
 from vistac.plugins.touch.types import MlePrior
 from vistac.protocols import TouchEstimator, TouchExplorer
+from vistac.testing import build_components
 
 
 def test_negative_information_is_the_gaussian_cdf_of_the_signed_distance() -> None:
@@ -192,13 +193,14 @@ def _sphere_file(path: Path) -> None:
 def test_two_classes_with_one_name_are_a_config_error(
     tmp_path: Path, specs: list[str], message: str
 ) -> None:
-    """Class probabilities are keyed by name: two classes named alike would share one entry."""
+    """Class probabilities are keyed by name: two classes named alike would share one entry.
+    Refused when the skill is read, before anything is built."""
     for spec in specs:
         if spec.endswith(".ply"):
             _sphere_file(tmp_path / spec)
-    config = TouchParticleFilter.Config(classes=specs)
+    estimator = {"estimator": {"plugin": "touch.pf", "with": {"classes": specs}}}
     with pytest.raises(ConfigError, match=re.escape(message) + ".*rename a mesh file"):
-        TouchParticleFilter(config, Ctx(tmp_path))
+        build_components(estimator, tmp_path, skill_dir=tmp_path)
 
 
 @pytest.mark.parametrize(
@@ -211,7 +213,7 @@ def test_two_classes_with_one_name_are_a_config_error(
     ],
 )
 def test_touch_components_conform(tmp_path: Path, role: str, spec: dict) -> None:
-    from vistac.testing import build_components, check_component, check_component_class
+    from vistac.testing import check_component, check_component_class
 
     ctx = build_components({role: spec}, tmp_path)
     component = ctx.component(role)

@@ -22,11 +22,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 from scipy.spatial.transform import Rotation
 from scipy.special import log_ndtr
 from vistac.component import Component, ComponentConfig, ComponentContext
-from vistac.errors import ConfigError
 from vistac.plugins.touch.library import KNOWN, resolve_shape, shape_name
 from vistac.plugins.touch.meshes import GridSDF, Mesh, apply_pose, transform_sdf
 from vistac.plugins.touch.ppf import PpfTable, Quantisation, align_pairs, point_pair_features
@@ -132,6 +131,17 @@ class TouchParticleFilter(Component):
             "them; not rescaled). A class is named by its library name or file stem; the names "
             "must be unique",
         )
+
+        @field_validator("classes")
+        @classmethod
+        def _names_unique(cls, specs: list[str]) -> list[str]:
+            if not specs:
+                raise ValueError("touch.pf needs at least one known class")
+            clash = _name_clash(specs)
+            if clash is not None:
+                raise ValueError(clash)
+            return specs
+
         feature_points: int = Field(200, ge=10, description="Poisson-disk samples per class")
         distance_step_m: float = Field(0.015, gt=0, description="PPF distance bin")
         angle_step_deg: float = Field(30.0, gt=0, le=90, description="PPF angle bin")
@@ -168,9 +178,6 @@ class TouchParticleFilter(Component):
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
         super().__init__(config, ctx)
-        if not config.classes:
-            raise ConfigError("touch.pf needs at least one known class")
-        _check_unique_names(config.classes)
         self._rng = ctx.rng("touch_pf")
         quantisation = Quantisation(config.distance_step_m, np.deg2rad(config.angle_step_deg))
         start_s = time.perf_counter()
@@ -473,20 +480,21 @@ class TouchParticleFilter(Component):
         return result
 
 
-def _check_unique_names(specs: list[str]) -> None:
-    """ConfigError naming the class specs that resolve to the same class name (the class
-    probabilities are keyed by name)."""
+def _name_clash(specs: list[str]) -> str | None:
+    """What is wrong when two class specs resolve to the same class name (the class
+    probabilities are keyed by name), or None."""
     first: dict[str, str] = {}
     for spec in specs:
         name = shape_name(spec)
         if name in first:
             suffix = Path(spec).suffix or Path(first[name]).suffix or ".ply"
-            raise ConfigError(
-                f"touch.pf classes {first[name]!r} and {spec!r} are both named {name!r} (a "
-                "mesh file's class name is its file stem); list each class once and rename "
-                f"a mesh file whose stem repeats another class's name, e.g. to {name}_2{suffix}"
+            return (
+                f"classes {first[name]!r} and {spec!r} are both named {name!r} (a mesh file's "
+                "class name is its file stem); list each class once and rename a mesh file "
+                f"whose stem repeats another class's name, e.g. to {name}_2{suffix}"
             )
         first[name] = spec
+    return None
 
 
 def _feature_samples(mesh: Mesh, count: int) -> tuple[FloatArray, FloatArray]:
