@@ -27,6 +27,7 @@ from vistac.plugins.filters.evaluate import (
     first_poses,
     learned_model_options,
     log_score,
+    mass_and_com,
     match_links,
     normalised_errors,
     nrmse,
@@ -46,6 +47,9 @@ from vistac.plugins.filters.evaluate import (
     tables_markdown,
     tracking_table,
     truth_in_belief_frames,
+    whole_object,
+    whole_object_markdown,
+    whole_object_table,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -121,6 +125,74 @@ def test_rows_follow_the_matched_true_link_and_joint() -> None:
     rows = nrmse_rows([pairs], RANGES)
     assert rows["f_j_0"] == pytest.approx(0.1 / 0.5)
     assert list(rows) == ["m_0", "m_1", "f_0", "f_1", "CoM_0", "CoM_1", "f_j_0", "overall"]
+
+
+def test_total_mass_and_combined_com_by_hand() -> None:
+    """Link 0 at the origin (1 kg, CoM 0.1 m along its x), link 1 at (1, 0) turned by 90 deg
+    (3 kg, CoM 0.1 m along its x, so at (1, 0.1) in the world): 4 kg, CoM at
+    (1 * (0.1, 0) + 3 * (1, 0.1)) / 4."""
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, math.pi / 2]])
+    params = {"m_0": 1.0, "com_x_0": 0.1, "com_y_0": 0.0,
+              "m_1": 3.0, "com_x_1": 0.1, "com_y_1": 0.0}  # fmt: skip
+    assert mass_and_com(params, poses) == pytest.approx((4.0, 0.775, 0.075))
+    massless = mass_and_com(params | {"m_0": -1.0, "m_1": 1.0}, poses)
+    assert massless[0] == 0.0 and math.isnan(massless[1]) and math.isnan(massless[2])
+    # Moving mass from one link to the other moves the combined CoM, not the total mass.
+    moved = mass_and_com(params | {"m_0": 3.0, "m_1": 1.0}, poses)
+    assert moved == pytest.approx((4.0, 0.325, 0.025))
+
+
+def test_whole_object_scores_every_link_in_its_own_frames() -> None:
+    """The belief's links in their fitted frames, the truth's in the true link frames; a
+    surplus belief link counts in the total; a single-link object has no whole-object score."""
+    truth = {"m_0": 1.0, "f_0": 0.3, "com_x_0": 0.0, "com_y_0": 0.0,
+             "m_1": 1.0, "f_1": 0.3, "com_x_1": 0.0, "com_y_1": 0.0}  # fmt: skip
+    belief = _belief({"m_0": 1.5, "com_x_0": 0.02, "com_y_0": 0.0, "m_1": 0.5, "com_x_1": 0.0,
+                      "com_y_1": 0.0, "m_2": 0.1, "com_x_2": 0.0, "com_y_2": 0.0})  # fmt: skip
+    prior = _belief({f"{key}_{i}": value for i in range(3) for key, value in
+                     (("m", 0.9), ("com_x", 0.0), ("com_y", 0.0))})  # fmt: skip
+    true_poses = np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0]])
+    fitted = np.array([[0.0, 0.0, math.pi], [0.2, 0.0, 0.0], [0.1, 0.5, 0.0]])
+    summary = {"belief": belief, "prior": prior, "ground_truth": {"parameters": truth}}
+    scores = whole_object(summary, (fitted, true_poses))
+    assert scores is not None
+    assert scores["truth"] == pytest.approx((2.0, 0.1, 0.0))
+    # link 0's fitted frame is turned by pi: its CoM 0.02 m along x lies at world x -0.02
+    centre = (1.5 * -0.02 + 0.5 * 0.2 + 0.1 * 0.1) / 2.1
+    assert scores["estimate"] == pytest.approx((2.1, centre, 0.1 * 0.5 / 2.1))
+    assert scores["prior"] == pytest.approx((2.7, 0.1, 0.5 / 3))
+    assert whole_object(summary | {"prior": None}, (fitted, true_poses))["prior"] is None
+    single = {"belief": _belief({"m_0": 1.0, "com_x_0": 0.0, "com_y_0": 0.0}),
+              "ground_truth": {"parameters": truth}}  # fmt: skip
+    assert whole_object(single, (fitted[:1], true_poses[:1])) is None
+    assert whole_object(summary, None) is None
+
+
+def test_whole_object_table_against_the_prior() -> None:
+    """RMSE over the multi-link runs per type and column, the prior's from the references;
+    single-link runs are left out."""
+    records = []
+    for name, mass_error, com_error in (("a", 0.1, (0.003, 0.004)), ("b", 0.3, (0.0, 0.0))):
+        record = _record("A-GNN", 1.0, 0.001) | {"object": name, "type": "heterogeneous"}
+        record["whole_object"] = {"truth": (2.0, 0.1, 0.2),
+                                  "estimate": (2.0 + mass_error, 0.1 + com_error[0],
+                                               0.2 + com_error[1]),
+                                  "prior": (1.8, 0.1, 0.21)}  # fmt: skip
+        records.append(record)
+    records.append(_record("A-GNN", 1.0, 0.001) | {"whole_object": None})  # one link
+    scored = [*records, *reference_records(records, Prior())]
+    table = whole_object_table(scored, ["A-GNN", "Prior"])
+    assert set(table) == {"heterogeneous", "all"}
+    cell = table["heterogeneous"]["push"]
+    assert cell["A-GNN"] == pytest.approx(
+        {"mass_kg": math.sqrt((0.1**2 + 0.3**2) / 2), "com_m": math.sqrt(0.005**2 / 2),
+         "runs": 2.0}
+    )  # fmt: skip
+    assert cell["Prior"] == pytest.approx({"mass_kg": 0.2, "com_m": 0.01, "runs": 2.0})
+    assert table["all"] == table["heterogeneous"]
+    markdown = "\n".join(whole_object_markdown(table))
+    assert "| heterogeneous | push | Prior | 0.200 | 10.000 | 2 |" in markdown
+    assert whole_object_markdown({}) == []
 
 
 def test_pose_change_error_by_hand() -> None:
@@ -231,6 +303,7 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
     cell = tables["tables"]["homogeneous"]["push"]
     assert list(cell) == ["A-GNN", "U-GNN", "A-Analytical", "Prior", "m·f known"]
     assert tables["differences"] == report["differences"] == {}  # one object: nothing to resample
+    assert tables["whole_object"] == {}  # one link: nothing to add up
     first = json.loads((out / "runs/rect2/a-gnn/summary.json").read_text())
     truth, started = first["ground_truth"], first["prior"]  # the belief the run started from
     # The prior's CoM std with the skill's com_discrepancy_m [0.010, 0.011] added.
@@ -271,6 +344,23 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
     assert (out / "runs/rect2/u-gnn/eval_args.json").stat().st_mtime_ns == stamp
     report = json.loads((out / "eval.json").read_text(encoding="utf-8"))
     assert list(report["variants"]) == ["U-GNN"]
+
+
+def test_eval_scores_a_welded_pair_as_a_whole(tmp_path: Path) -> None:
+    """A two-link run gets the whole-object table: the prior's total mass error is that of two
+    links at the skill's prior mean 0.9 kg; the estimate's combined CoM is finite."""
+    out = tmp_path / "eval"
+    pair = ROOT / "skills/objects/hetero_rect_tri.yaml"
+    code = main(["-q", "eval", str(ROOT / "skills/explore_push.yaml"), "--out", str(out),
+                 "--objects", str(pair), "--variants", "a-gnn", "--max-interactions", "1",
+                 *FAST])  # fmt: skip
+    assert code == 0
+    tables = json.loads((out / "tables.json").read_text(encoding="utf-8"))
+    cell = tables["whole_object"]["heterogeneous"]["push"]
+    true_mass = sum(link.mass_kg for link in load_object(pair).links)
+    assert cell["Prior"]["mass_kg"] == pytest.approx(abs(2 * 0.9 - true_mass))
+    assert math.isfinite(cell["A-GNN"]["com_m"]) and cell["A-GNN"]["runs"] == 1.0
+    assert "| heterogeneous | push | A-GNN |" in (out / "tables.md").read_text(encoding="utf-8")
 
 
 def test_eval_exits_1_when_a_run_fails(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -20,6 +20,10 @@ of the run (before the first push moves the object). It is normalised by the ran
 radial CoM over the 120 generated configurations. Belief links are matched to true links by
 their positions at that step (nearest, over all assignments).
 
+Whole object. Of a welded pair, a push shows the total mass and the combined CoM, not how they
+split between the links; the whole-object table scores those two (RMSE in kg and mm, the CoM
+in the world frame at the first filter step) for every multi-link object, next to the prior.
+
 Pose tracking. The belief's poses are those of the fitted superquadric frames, the truth the
 link frames, so each step is compared as a change from the episode's first step: the error is
 the distance between the belief's position and the true position of the body point that sat
@@ -54,6 +58,7 @@ from vistac.objects import (
     interleave_types,
     load_object,
     match_links,
+    to_world_xy,
     write_configurations,
 )
 from vistac.plugins.filters.component import Prior
@@ -281,10 +286,14 @@ def reference_records(records: Sequence[dict[str, Any]], prior: Prior) -> list[d
     for record in truths.values():
         base = {key: record[key] for key in ("object", "type", "kind")}
         prior_means = record.get("prior") or prior_pairs(record["parameters"], prior)
+        whole = record.get("whole_object")
         for label, pairs in zip(REFERENCES, (prior_means,
                                              product_known_pairs(record["parameters"])),
                                 strict=True):  # fmt: skip
-            references.append(base | {"variant": label, "status": "ok", "parameters": pairs})
+            reference = base | {"variant": label, "status": "ok", "parameters": pairs}
+            if label == "Prior" and whole and whole["prior"]:
+                reference["whole_object"] = whole | {"estimate": whole["prior"]}
+            references.append(reference)
     return references
 
 
@@ -405,6 +414,41 @@ def truth_in_belief_frames(
     if poses is None:
         return {name: value for name, value in truth.items() if not name.startswith("com_")}
     return com_in_frames(truth, links, poses[0], poses[1])
+
+
+def mass_and_com(parameters: dict[str, float], poses: np.ndarray) -> tuple[float, float, float]:
+    """(total mass kg, combined CoM x m, y m) of links with planar poses [L, 3] (world, x m,
+    y m, theta rad) and ``m_i``, ``com_x_i``, ``com_y_i`` (link i's frame) in ``parameters``;
+    the CoM is NaN when the masses do not sum to more than 0."""
+    masses = np.array([parameters[f"m_{i}"] for i in range(len(poses))])
+    coms = np.array([
+        to_world_xy(np.array([[parameters[f"com_x_{i}"], parameters[f"com_y_{i}"], 0.0]]),
+                    poses[i])[0, :2]
+        for i in range(len(poses))
+    ])  # fmt: skip
+    total = float(masses.sum())
+    x, y = masses @ coms / total if total > 0 else (math.nan, math.nan)
+    return total, float(x), float(y)
+
+
+def whole_object(summary: dict[str, Any], poses: FirstPoses) -> dict[str, Any] | None:
+    """{"truth", "estimate", "prior"}: :func:`mass_and_com` of the true links, of the final
+    belief's means and of the prior's (None without a prior in the summary), every link
+    counted, the poses those at the first filter step (``poses``); None for a single-link
+    object or a run without filter steps."""
+    belief = summary.get("belief") or {}
+    if poses is None or len(poses[1]) < 2 or "m_0" not in belief:
+        return None
+
+    def means(entries: dict[str, dict[str, float]]) -> dict[str, float]:
+        return {name: entry["mean"] for name, entry in entries.items()}
+
+    prior = summary.get("prior")
+    return {
+        "truth": mass_and_com(summary["ground_truth"]["parameters"], poses[1]),
+        "estimate": mass_and_com(means(belief), poses[0]),
+        "prior": mass_and_com(means(prior), poses[0]) if prior else None,
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -786,6 +830,7 @@ def score_run(run_dir: Path) -> dict[str, Any]:
         "normalised_errors": normalised_errors(summary.get("belief") or {}, truth, links),
         "history": history,
         "tracking": tracking_errors(run_dir, summary, links),
+        "whole_object": whole_object(summary, poses),
     }
 
 
@@ -917,6 +962,31 @@ def difference_table(
     return table
 
 
+def whole_object_table(
+    records: Sequence[dict[str, Any]], columns: Sequence[str]
+) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
+    """{type: {kind: {column: RMSE of the total mass (kg) and of the combined CoM (m), runs}}},
+    plus type ``all``, over the runs with a :func:`whole_object` score (multi-link objects)."""
+    table: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
+    for kind_type in [*OBJECT_TYPES, "all"]:
+        for kind in sorted({r["kind"] for r in records}):
+            for column in columns:
+                scores = [
+                    r["whole_object"] for r in _scored(records, column)
+                    if r["kind"] == kind and kind_type in ("all", r["type"])
+                    and r.get("whole_object")
+                ]  # fmt: skip
+                if not scores:
+                    continue
+                error = np.array([np.subtract(s["estimate"], s["truth"]) for s in scores])
+                table.setdefault(kind_type, {}).setdefault(kind, {})[column] = {
+                    "mass_kg": float(np.sqrt(np.mean(error[:, 0] ** 2))),
+                    "com_m": float(np.sqrt(np.mean(np.sum(error[:, 1:] ** 2, axis=1)))),
+                    "runs": float(len(scores)),
+                }
+    return table
+
+
 def tracking_table(records: Sequence[dict[str, Any]]) -> dict[str, dict[str, dict[str, float]]]:
     """{type: {variant: mean position error (m), angle error (rad), runs}}, plus ``all``."""
     table: dict[str, dict[str, dict[str, float]]] = {}
@@ -1031,9 +1101,11 @@ def tables_markdown(
     calibration: dict[str, dict[str, float]] | None = None,
     differences: Differences | None = None,
     differences_from: str = "",
+    whole: dict[str, dict[str, dict[str, dict[str, float]]]] | None = None,
 ) -> str:
     """Markdown NRMSE tables (one per object type and interaction), the differences from the
-    first column (:func:`difference_table`), the tracking and the calibration tables."""
+    first column (:func:`difference_table`), the whole-object (:func:`whole_object_table`),
+    the tracking and the calibration tables."""
     lines = ["# Parameter NRMSE (RMSE / range over the object set)", ""]
     lines += [
         "CoM: the distance between the estimated and the true CoM, the truth in the fitted "
@@ -1064,6 +1136,7 @@ def tables_markdown(
         f"Each column's overall NRMSE minus {differences_from}'s on the objects both ran "
         f"(negative: lower than {differences_from})",
     )
+    lines += whole_object_markdown(whole or {})
     lines += ["# Pose tracking (mean error of the pose change since each episode's start)", ""]
     lines += [
         "| objects | variant | position (mm) | angle (deg) | runs |",
@@ -1089,6 +1162,28 @@ def tables_markdown(
                   f"{_fmt(values['median_abs_z'])} | {_fmt(values['log_score'])} | "
                   f"{values['entries']:.0f} |"]  # fmt: skip
     return "\n".join(lines) + "\n"
+
+
+def whole_object_markdown(whole: dict[str, dict[str, dict[str, dict[str, float]]]]) -> list[str]:
+    """The whole-object section of tables.md (:func:`whole_object_table`); empty without
+    multi-link runs."""
+    if not whole:
+        return []
+    lines = ["# Whole object (RMSE of the total mass and of the combined CoM)", ""]
+    lines += [
+        "What a push shows of a welded pair: its total mass and its combined CoM, not how "
+        "they split between the links. Every link counted; the CoM in the world frame at the "
+        "first filter step.",
+        "",
+        "| objects | interaction | column | mass (kg) | CoM (mm) | runs |",
+        "|---|---|---|---:|---:|---:|",
+    ]
+    for kind_type, by_kind in whole.items():
+        for kind, by_column in by_kind.items():
+            lines += [f"| {kind_type} | {kind} | {column} | {_fmt(v['mass_kg'])} | "
+                      f"{_fmt(v['com_m'] * 1000)} | {v['runs']:.0f} |"
+                      for column, v in by_column.items()]  # fmt: skip
+    return [*lines, ""]
 
 
 def plot_curves(curves: dict[str, list[float]], path: Path) -> None:
@@ -1201,6 +1296,7 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
         "tables": nrmse_tables(scored, ranges, columns),
         "differences": difference_table(scored, ranges, columns[: columns.index("Prior") + 1]),
         "differences_from": columns[0],
+        "whole_object": whole_object_table(scored, columns[: columns.index("Prior") + 1]),
         "nrmse_vs_interactions": nrmse_by_interaction(records, ranges, labels),
         "tracking": tracking_table(records),
         "calibration": calibration_table(records, ranges),
@@ -1233,14 +1329,15 @@ def _write_reports(report: dict[str, Any], out: Path) -> None:
     (out / "eval.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
     (out / "tables.json").write_text(
         json.dumps({key: report[key] for key in ("ranges", "tables", "differences",
-                                                   "differences_from", "tracking",
-                                                   "calibration", "nrmse_vs_interactions")},
+                                                   "differences_from", "whole_object",
+                                                   "tracking", "calibration",
+                                                   "nrmse_vs_interactions")},
                    indent=2),
         encoding="utf-8",
     )  # fmt: skip
     markdown = tables_markdown(
         report["tables"], report["tracking"], report["calibration"], report["differences"],
-        report["differences_from"],
+        report["differences_from"], report["whole_object"],
     )
     (out / "tables.md").write_text(markdown, encoding="utf-8")
     plot_curves(report["nrmse_vs_interactions"], out / "nrmse_vs_interactions.png")
