@@ -163,6 +163,55 @@ def test_push_update_is_the_bayes_posterior_of_a_linear_model() -> None:
     assert math.sqrt(float(posterior.cov[8, 8])) == pytest.approx(0.02, rel=0.1)
 
 
+def test_a_welded_pair_shows_its_combined_com_not_the_split() -> None:
+    """Two welded links of equal mass turn together at k times the mean of their com_y: the
+    push's posterior of that mean is the Kalman one (both links' end angles measure it, so
+    the noise variance halves), and the difference of the two com_y keeps its prior."""
+    layout = StateLayout(2)
+    var_per_link = (1e-6, 1e-6, 1e-4, 0.0, 0.0, 0.0)
+
+    def predict(states: torch.Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
+        del inputs
+        rate = TURN_PER_COM * layout.link_parameters(states)[..., :, 3].mean(-1)
+        pose = layout.link_pose(states).clone()
+        pose[..., 2] += dt_s * rate[..., None]
+        pose[..., 5] = rate[..., None]
+        force = states.new_zeros((*states.shape[:-1], 2))
+        return Prediction(pose.flatten(-2), force, torch.tensor(var_per_link * 2, dtype=DTYPE))
+
+    def rollout(states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return end_poses(predict, layout, states, _inputs(), DT_S, None)
+
+    mean = torch.zeros(layout.size, dtype=DTYPE)
+    mean[[12, 13, 16, 17]] = torch.tensor([0.5, 0.3, 0.5, 0.3], dtype=DTYPE)  # m f per link
+    std = torch.full((layout.size,), 1e-3, dtype=DTYPE)
+    std[[2, 8]], std[[14, 15, 18, 19]] = 1e-2, 0.02  # link angles; com_x, com_y per link
+    prior = Belief(mean, torch.diag(std**2))
+    truth = mean.clone()
+    truth[[15, 19]] = torch.tensor([-0.020, -0.004], dtype=DTYPE)  # com_y mean -0.012
+    tracked, _ = rollout(truth[None])
+    after = mean.clone()
+    after[[0, 1, 2, 6, 7, 8]] = tracked[0].flatten()
+    settings = PushEvidence(enabled=True, samples=4000, min_ess_fraction=0.01,
+                            std_floor=(0.001, 0.02))  # fmt: skip
+    posterior = push_update(Belief(after, prior.cov), prior, layout, settings, rollout,
+                            torch.full((2, 2), 0.06, dtype=DTYPE),
+                            torch.Generator().manual_seed(0))  # fmt: skip
+    gain_rad_per_m = STEPS * DT_S * TURN_PER_COM
+    prior_var = 0.02**2 / 2  # of the mean of two com_y
+    noise_var = (max(STEPS * 1e-4, 0.02**2) + 2 * 1e-2**2) / 2
+    kalman_gain = prior_var * gain_rad_per_m / (gain_rad_per_m**2 * prior_var + noise_var)
+    want_mean = kalman_gain * gain_rad_per_m * -0.012
+    want_std = math.sqrt(prior_var - kalman_gain * gain_rad_per_m * prior_var)
+    mean_of_pair = 0.5 * (posterior.mean[15] + posterior.mean[19])
+    assert float(mean_of_pair) == pytest.approx(want_mean, abs=0.1 * want_std)
+    difference = torch.tensor([1.0, -1.0], dtype=DTYPE)
+    index = torch.tensor([15, 19])
+    assert abs(float(posterior.mean[15] - posterior.mean[19])) < 0.1 * 0.02
+    spread_var = float(difference @ posterior.cov[index][:, index] @ difference)
+    assert math.sqrt(spread_var) == pytest.approx(math.sqrt(2) * 0.02, rel=0.1)
+
+
 def test_tempering_limits_what_one_push_may_tell() -> None:
     """With most samples kept (min_ess_fraction 0.8) one push moves the CoM less than
     the untempered posterior, towards the truth."""
@@ -198,11 +247,11 @@ def test_objects_with_more_links_than_max_links_are_left_as_they_are() -> None:
         raise AssertionError("rolled out")
 
     sizes = torch.full((2, 2), 0.05, dtype=DTYPE)
-    settings = PushEvidence(enabled=True)
+    settings = PushEvidence(enabled=True, max_links=1)
     kept = push_update(belief, belief, layout, settings, no_rollout, sizes, torch.Generator())
     assert kept is belief
-    with pytest.raises(AssertionError, match="rolled out"):
-        push_update(belief, belief, layout, PushEvidence(enabled=True, max_links=2), no_rollout,
+    with pytest.raises(AssertionError, match="rolled out"):  # two links by default
+        push_update(belief, belief, layout, PushEvidence(enabled=True), no_rollout,
                     sizes, torch.Generator())  # fmt: skip
 
 
