@@ -162,6 +162,8 @@ def test_whole_object_scores_every_link_in_its_own_frames() -> None:
     assert scores["estimate"] == pytest.approx((2.1, centre, 0.1 * 0.5 / 2.1))
     assert scores["prior"] == pytest.approx((2.7, 0.1, 0.5 / 3))
     assert whole_object(summary | {"prior": None}, (fitted, true_poses))["prior"] is None
+    two_link_prior = {name: entry for name, entry in prior.items() if not name.endswith("_2")}
+    assert whole_object(summary | {"prior": two_link_prior}, (fitted, true_poses))["prior"] is None
     single = {"belief": _belief({"m_0": 1.0, "com_x_0": 0.0, "com_y_0": 0.0}),
               "ground_truth": {"parameters": truth}}  # fmt: skip
     assert whole_object(single, (fitted[:1], true_poses[:1])) is None

@@ -433,9 +433,9 @@ def mass_and_com(parameters: dict[str, float], poses: np.ndarray) -> tuple[float
 
 def whole_object(summary: dict[str, Any], poses: FirstPoses) -> dict[str, Any] | None:
     """{"truth", "estimate", "prior"}: :func:`mass_and_com` of the true links, of the final
-    belief's means and of the prior's (None without a prior in the summary), every link
-    counted, the poses those at the first filter step (``poses``); None for a single-link
-    object or a run without filter steps."""
+    belief's means and of the prior's (None without a prior of the belief's links in the
+    summary), every link counted, the poses those at the first filter step (``poses``); None
+    for a single-link object or a run without filter steps."""
     belief = summary.get("belief") or {}
     if poses is None or len(poses[1]) < 2 or "m_0" not in belief:
         return None
@@ -443,11 +443,13 @@ def whole_object(summary: dict[str, Any], poses: FirstPoses) -> dict[str, Any] |
     def means(entries: dict[str, dict[str, float]]) -> dict[str, float]:
         return {name: entry["mean"] for name, entry in entries.items()}
 
-    prior = summary.get("prior")
+    prior = summary.get("prior") or {}
+    links = range(len(poses[0]))
     return {
         "truth": mass_and_com(summary["ground_truth"]["parameters"], poses[1]),
         "estimate": mass_and_com(means(belief), poses[0]),
-        "prior": mass_and_com(means(prior), poses[0]) if prior else None,
+        "prior": mass_and_com(means(prior), poses[0])
+        if all(f"m_{i}" in prior for i in links) else None,
     }
 
 
