@@ -38,7 +38,7 @@ import json
 import logging
 import math
 import shutil
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
@@ -862,17 +862,27 @@ def nrmse_tables(
 ) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
     """{type: {kind: {variant: {row: NRMSE}}}} of the final beliefs, plus type ``all``."""
     tables: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
+    for kind_type, kind, variant, runs in _grouped(records, variants, "parameters"):
+        cell = tables.setdefault(kind_type, {}).setdefault(kind, {})
+        cell[variant] = nrmse_rows(runs, ranges) | {"runs": float(len(runs))}
+    return tables
+
+
+def _grouped(
+    records: Sequence[dict[str, Any]], columns: Sequence[str], key: str
+) -> Iterator[tuple[str, str, str, list[Any]]]:
+    """(object type or ``all``, interaction, column, ``key`` of each of the column's scored
+    runs of that type and interaction that has it), for every group with such runs."""
     for kind_type in [*OBJECT_TYPES, "all"]:
         for kind in sorted({r["kind"] for r in records}):
-            for variant in variants:
-                runs = [
-                    r["parameters"] for r in _scored(records, variant)
+            for column in columns:
+                values = [
+                    r[key] for r in _scored(records, column)
                     if r["kind"] == kind and kind_type in ("all", r["type"])
+                    and r.get(key) is not None
                 ]  # fmt: skip
-                if runs:
-                    cell = tables.setdefault(kind_type, {}).setdefault(kind, {})
-                    cell[variant] = nrmse_rows(runs, ranges) | {"runs": float(len(runs))}
-    return tables
+                if values:
+                    yield kind_type, kind, column, values
 
 
 def nrmse_by_interaction(
@@ -970,22 +980,13 @@ def whole_object_table(
     """{type: {kind: {column: RMSE of the total mass (kg) and of the combined CoM (m), runs}}},
     plus type ``all``, over the runs with a :func:`whole_object` score (multi-link objects)."""
     table: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
-    for kind_type in [*OBJECT_TYPES, "all"]:
-        for kind in sorted({r["kind"] for r in records}):
-            for column in columns:
-                scores = [
-                    r["whole_object"] for r in _scored(records, column)
-                    if r["kind"] == kind and kind_type in ("all", r["type"])
-                    and r.get("whole_object")
-                ]  # fmt: skip
-                if not scores:
-                    continue
-                error = np.array([np.subtract(s["estimate"], s["truth"]) for s in scores])
-                table.setdefault(kind_type, {}).setdefault(kind, {})[column] = {
-                    "mass_kg": float(np.sqrt(np.mean(error[:, 0] ** 2))),
-                    "com_m": float(np.sqrt(np.mean(np.sum(error[:, 1:] ** 2, axis=1)))),
-                    "runs": float(len(scores)),
-                }
+    for kind_type, kind, column, scores in _grouped(records, columns, "whole_object"):
+        error = np.array([np.subtract(score["estimate"], score["truth"]) for score in scores])
+        table.setdefault(kind_type, {}).setdefault(kind, {})[column] = {
+            "mass_kg": float(np.sqrt(np.mean(error[:, 0] ** 2))),
+            "com_m": float(np.sqrt(np.mean(np.sum(error[:, 1:] ** 2, axis=1)))),
+            "runs": float(len(scores)),
+        }
     return table
 
 
