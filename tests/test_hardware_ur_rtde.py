@@ -33,10 +33,15 @@ def emulator() -> Iterator[URControllerProcess]:
         yield process
 
 
-def make_arm(plugins: Plugins | None, tmp_path: Path, host: str, **options: Any) -> Any:
+@contextlib.contextmanager
+def open_arm(plugins: Plugins | None, tmp_path: Path, host: str, **options: Any) -> Iterator[Any]:
+    """A ``ur_rtde.arm`` on ``host`` with ``options``, closed on the way out."""
     components = {"arm": {"plugin": "ur_rtde.arm", "with": {"host": host, **options}}}
-    ctx = build_components(components, tmp_path, plugins=plugins)
-    return ctx.component("arm")
+    arm = build_components(components, tmp_path, plugins=plugins).component("arm")
+    try:
+        yield arm
+    finally:
+        arm.close()
 
 
 def wait_for(predicate: Any, timeout_s: float = 2.0) -> bool:
@@ -68,8 +73,7 @@ def test_deadline_returns_value_or_times_out() -> None:
 def test_streams_velocity_reads_pose_and_force(
     emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
 ) -> None:
-    arm = make_arm(plugins, tmp_path, emulator.host)
-    try:
+    with open_arm(plugins, tmp_path, emulator.host) as arm:
         start = arm.state()
         assert np.allclose(start.pose, [0.0, 0.45, 0.15, 0.0], atol=1e-6)
         assert emulator.state()["script_uploads"] == 1
@@ -88,15 +92,12 @@ def test_streams_velocity_reads_pose_and_force(
         assert stopped.pose[0] == pytest.approx(0.01, abs=0.003)  # 0.02 m/s for ~0.5 s
         assert stopped.timestamp_s > start.timestamp_s
         assert 10 in emulator.state()["commands"] and 15 in emulator.state()["commands"]
-    finally:
-        arm.close()
 
 
 def test_speed_is_capped_and_moves_stay_in_the_workspace(
     emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
 ) -> None:
-    arm = make_arm(plugins, tmp_path, emulator.host, workspace_max_m=[0.02, 0.85, 0.5])
-    try:
+    with open_arm(plugins, tmp_path, emulator.host, workspace_max_m=[0.02, 0.85, 0.5]) as arm:
         arm.command_velocity(np.array([1.0, 1.0, 0.0, 5.0]))  # far above the caps
         time.sleep(0.15)
         twist = arm.state().twist
@@ -112,8 +113,6 @@ def test_speed_is_capped_and_moves_stay_in_the_workspace(
             arm.command_velocity(np.array([0.01, 0.0, 0.0, 0.0]))
         arm.command_velocity(np.array([-0.01, 0.0, 0.0, 0.0]))  # back inside is allowed
         arm.stop()
-    finally:
-        arm.close()
 
 
 def test_dropped_connection_is_detected_fast_and_nothing_blocks(
@@ -151,8 +150,7 @@ def _drop_and_reconnect(emulator: URControllerProcess, tmp_dir: str, results: An
 
 
 def _drop_and_reconnect_s(emulator: URControllerProcess, tmp_dir: Path) -> float:
-    arm = make_arm(None, tmp_dir, emulator.host)
-    try:
+    with open_arm(None, tmp_dir, emulator.host) as arm:
         arm.command_velocity(np.array([0.01, 0.0, 0.0, 0.0]))
         dropped_at = time.monotonic()
         emulator.drop()
@@ -169,8 +167,6 @@ def _drop_and_reconnect_s(emulator: URControllerProcess, tmp_dir: Path) -> float
         arm.reconnect()
         assert arm.connected and arm.state().pose.shape == (4,)
         return latency_s
-    finally:
-        arm.close()
 
 
 class FakeInterface:
@@ -217,8 +213,8 @@ def test_closing_under_a_blocked_command_disconnects_nothing(
 def test_silent_controller_times_out_a_blocking_move(
     emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
 ) -> None:
-    arm = make_arm(plugins, tmp_path, emulator.host, max_data_age_s=1.0, move_timeout_margin_s=0.3)
-    try:
+    options = {"max_data_age_s": 1.0, "move_timeout_margin_s": 0.3}
+    with open_arm(plugins, tmp_path, emulator.host, **options) as arm:
         emulator.silent(True)  # moveL waits for an answer (ur_rtde gives up after about 4 s)
         started = time.monotonic()
         with pytest.raises(HardwareError):
@@ -233,15 +229,12 @@ def test_silent_controller_times_out_a_blocking_move(
             lambda: not any(t.name.startswith("deadline:moveL") for t in threading.enumerate()),
             timeout_s=6.0,
         )
-    finally:
-        arm.close()
 
 
 def test_protective_stop_refuses_motion_until_a_person_clears_it(
     emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
 ) -> None:
-    arm = make_arm(plugins, tmp_path, emulator.host)
-    try:
+    with open_arm(plugins, tmp_path, emulator.host) as arm:
         arm.command_velocity(np.array([0.02, 0.0, 0.0, 0.0]))
         emulator.protective_stop()
         assert wait_for(lambda: arm.state().protective_stop)
@@ -258,21 +251,19 @@ def test_protective_stop_refuses_motion_until_a_person_clears_it(
         arm.command_velocity(np.array([0.0, 0.01, 0.0, 0.0]))
         assert wait_for(lambda: arm.state().twist[1] > 0.005)
         arm.stop()
-    finally:
-        arm.close()
 
 
 def test_ur_arm_conforms(emulator: URControllerProcess, plugins: Plugins, tmp_path: Path) -> None:
-    arm = make_arm(plugins, tmp_path, emulator.host)
-    try:
+    with open_arm(plugins, tmp_path, emulator.host) as arm:
         check_component(arm, advance=time.sleep)
-    finally:
-        arm.close()
 
 
 def test_unreachable_controller_gives_a_clear_error(plugins: Plugins, tmp_path: Path) -> None:
-    with pytest.raises(HardwareError, match=r"UR controller at 127\.0\.0\.3 does not answer"):
-        make_arm(plugins, tmp_path, "127.0.0.3", connect_timeout_s=3.0)
+    with (
+        pytest.raises(HardwareError, match=r"UR controller at 127\.0\.0\.3 does not answer"),
+        open_arm(plugins, tmp_path, "127.0.0.3", connect_timeout_s=3.0),
+    ):
+        pass
 
 
 def test_silent_controller_does_not_hang_the_connection(
@@ -280,8 +271,11 @@ def test_silent_controller_does_not_hang_the_connection(
 ) -> None:
     emulator.silent(True)  # accepts connections, streams nothing: ur_rtde would wait forever
     started = time.monotonic()
-    with pytest.raises(HardwareError, match=r"does not answer or stream RTDE data within 0\.5 s"):
-        make_arm(plugins, tmp_path, emulator.host, connect_timeout_s=0.5)
+    with (
+        pytest.raises(HardwareError, match=r"does not answer or stream RTDE data within 0\.5 s"),
+        open_arm(plugins, tmp_path, emulator.host, connect_timeout_s=0.5),
+    ):
+        pass
     assert time.monotonic() - started < 1.5
 
 
@@ -294,8 +288,7 @@ def test_stop_after_a_stale_read_still_stops_the_arm(
     emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
 ) -> None:
     # one stale read marks the arm disconnected while the link still works
-    arm = make_arm(plugins, tmp_path, emulator.host, watchdog_min_hz=0.2)
-    try:
+    with open_arm(plugins, tmp_path, emulator.host, watchdog_min_hz=0.2) as arm:
         arm.command_velocity(np.array([0.02, 0.0, 0.0, 0.0]))
         assert wait_for(lambda: emulator.state()["speed"][0] > 0.015)
         emulator.silent(True)
@@ -305,8 +298,6 @@ def test_stop_after_a_stale_read_still_stops_the_arm(
         assert not arm.connected
         arm.stop()  # before the controller's watchdog (5 s) would stop the arm
         assert wait_for(lambda: emulator.state()["speed"][0] == 0.0, timeout_s=0.5)
-    finally:
-        arm.close()
 
 
 @pytest.mark.parametrize(
@@ -329,8 +320,7 @@ def test_safety_conditions_are_named(bits: int, condition: str) -> None:
 def test_safety_stops_refuse_motion(
     emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
 ) -> None:
-    arm = make_arm(plugins, tmp_path, emulator.host)
-    try:
+    with open_arm(plugins, tmp_path, emulator.host) as arm:
         for bits, condition in ((1 | 1 << 4, "safeguard stop"), (1 | 1 << 10, "due to safety")):
             emulator.set_safety_bits(bits)
             wait_for(lambda: arm._safety_bits() == bits)  # noqa: B023 (waited for here)
@@ -340,64 +330,59 @@ def test_safety_stops_refuse_motion(
             with pytest.raises(SafetyError, match=condition):
                 arm.move_to(np.array([0.0, 0.46, 0.15, 0.0]))
         assert 10 not in emulator.state()["commands"] and 3 not in emulator.state()["commands"]
-    finally:
-        arm.close()
 
 
 def test_stop_halts_a_move(emulator: URControllerProcess, plugins: Plugins, tmp_path: Path) -> None:
-    arm = make_arm(plugins, tmp_path, emulator.host, move_timeout_margin_s=0.2)
     errors: list[Exception] = []
+    with open_arm(plugins, tmp_path, emulator.host, move_timeout_margin_s=0.2) as arm:
 
-    def move() -> None:
+        def move() -> None:
+            try:
+                arm.move_to(np.array([0.02, 0.45, 0.15, 0.0]))  # 0.8 s at 25 mm/s
+            except HardwareError as exc:
+                errors.append(exc)
+
+        mover = threading.Thread(target=move)
         try:
-            arm.move_to(np.array([0.02, 0.45, 0.15, 0.0]))  # 0.8 s at 25 mm/s
-        except HardwareError as exc:
-            errors.append(exc)
-
-    mover = threading.Thread(target=move)
-    try:
-        mover.start()
-        assert wait_for(lambda: emulator.state()["pose"][0] > 0.003)
-        arm.stop()
-        assert wait_for(lambda: emulator.state()["speed"][0] == 0.0, timeout_s=0.3)
-        stopped_x = emulator.state()["pose"][0]
-        time.sleep(0.2)
-        assert emulator.state()["pose"][0] == stopped_x < 0.015
-        mover.join(3.0)
-        assert errors and "did not reach" in str(errors[0])
-    finally:
-        mover.join(3.0)
-        arm.close()
+            mover.start()
+            assert wait_for(lambda: emulator.state()["pose"][0] > 0.003)
+            arm.stop()
+            assert wait_for(lambda: emulator.state()["speed"][0] == 0.0, timeout_s=0.3)
+            stopped_x = emulator.state()["pose"][0]
+            time.sleep(0.2)
+            assert emulator.state()["pose"][0] == stopped_x < 0.015
+            mover.join(3.0)
+            assert errors and "did not reach" in str(errors[0])
+        finally:
+            mover.join(3.0)
 
 
 def test_the_arm_brakes_before_the_workspace_wall(
     emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
 ) -> None:
     x_max_m = 0.10
-    arm = make_arm(
-        plugins, tmp_path, emulator.host, max_speed_mps=0.25, workspace_max_m=[x_max_m, 0.85, 0.5]
-    )
     peak_x_m = -1.0
-    try:
-        started = time.monotonic()
-        while time.monotonic() - started < 1.5:  # a 15 Hz control loop at full speed to +x
-            with contextlib.suppress(SafetyError):  # at the wall
-                arm.command_velocity(np.array([0.25, 0.0, 0.0, 0.0]))
-            next_s = time.monotonic() + 1 / 15
-            while time.monotonic() < next_s:
-                peak_x_m = max(peak_x_m, emulator.state()["pose"][0])
-                time.sleep(0.005)
-        assert x_max_m - 0.01 < peak_x_m < x_max_m + 2e-4
-    finally:
-        arm.stop()
-        arm.close()
+    with open_arm(
+        plugins, tmp_path, emulator.host, max_speed_mps=0.25, workspace_max_m=[x_max_m, 0.85, 0.5]
+    ) as arm:
+        try:
+            started = time.monotonic()
+            while time.monotonic() - started < 1.5:  # a 15 Hz control loop at full speed to +x
+                with contextlib.suppress(SafetyError):  # at the wall
+                    arm.command_velocity(np.array([0.25, 0.0, 0.0, 0.0]))
+                next_s = time.monotonic() + 1 / 15
+                while time.monotonic() < next_s:
+                    peak_x_m = max(peak_x_m, emulator.state()["pose"][0])
+                    time.sleep(0.005)
+            assert x_max_m - 0.01 < peak_x_m < x_max_m + 2e-4
+        finally:
+            arm.stop()
 
 
 def test_data_that_stopped_during_an_idle_gap_is_stale(
     emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
 ) -> None:
-    arm = make_arm(plugins, tmp_path, emulator.host)
-    try:
+    with open_arm(plugins, tmp_path, emulator.host) as arm:
         arm.state()
         time.sleep(0.5)  # idle: nobody polls while the data still flows
         emulator.silent(True)
@@ -407,16 +392,11 @@ def test_data_that_stopped_during_an_idle_gap_is_stale(
         emulator.silent(False)
         arm.reconnect()
         assert time.monotonic() - arm.state().timestamp_s < 0.05
-    finally:
-        arm.close()
 
 
 def test_move_to_returns_once_the_yaw_is_reached(
     emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
 ) -> None:
-    arm = make_arm(plugins, tmp_path, emulator.host)
-    try:
+    with open_arm(plugins, tmp_path, emulator.host) as arm:
         arm.move_to(np.array([0.0, 0.45, 0.15, 0.5]))  # a turn in place, 0.5 s
         assert arm.state().pose[3] == pytest.approx(0.5, abs=2e-3)
-    finally:
-        arm.close()
