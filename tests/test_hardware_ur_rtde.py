@@ -374,7 +374,9 @@ def test_the_arm_brakes_before_the_workspace_wall(
                 while time.monotonic() < next_s:
                     peak_x_m = max(peak_x_m, emulator.state()["pose"][0])
                     time.sleep(0.005)
-            assert x_max_m - 0.01 < peak_x_m < x_max_m + 2e-4
+            # Without the braking clip the TCP ran 8.9 mm past the wall; with it, 0.1 mm on
+            # an idle machine and 0.34 mm once under the whole suite's load (late loop ticks).
+            assert x_max_m - 0.01 < peak_x_m < x_max_m + 1e-3
         finally:
             arm.stop()
 
