@@ -402,3 +402,12 @@ def test_move_to_returns_once_the_yaw_is_reached(
     with open_arm(plugins, tmp_path, emulator.host) as arm:
         arm.move_to(np.array([0.0, 0.45, 0.15, 0.5]))  # a turn in place, 0.5 s
         assert arm.state().pose[3] == pytest.approx(0.5, abs=2e-3)
+
+
+def test_a_turn_longer_than_the_margin_is_not_stopped(
+    emulator: URControllerProcess, plugins: Plugins, tmp_path: Path
+) -> None:
+    """The controller chooses how fast moveL turns; a move is stopped only when it stalls."""
+    with open_arm(plugins, tmp_path, emulator.host, move_timeout_margin_s=0.4) as arm:
+        arm.move_to(np.array([0.0, 0.45, 0.15, 1.2]))  # a turn in place, 1.2 s
+        assert arm.state().pose[3] == pytest.approx(1.2, abs=2e-3)

@@ -25,9 +25,10 @@ Safety, checked before every command:
 - connecting: ``probe_controller`` first checks, with timeouts, that the controller streams
   RTDE data, because the library's constructors hold the GIL while they wait (forever for a
   controller that accepts connections but sends nothing) and no deadline can stop them.
-- every library call runs with a deadline (``command_timeout_s``; moves: their expected
-  duration plus ``move_timeout_margin_s``): ``moveL`` on a dropped connection would otherwise
-  block for minutes.
+- every library call runs with a deadline (``command_timeout_s``): ``moveL`` on a dropped
+  connection would otherwise block for minutes. A move is stopped when it has come no closer
+  to its target for ``move_timeout_margin_s``: how fast the controller's ``moveL`` turns the
+  tool is its own choice, so no deadline is computed from the distance.
 - an RTDE watchdog (``watchdog_min_hz``) makes the controller stop the arm when commands stop
   arriving; while the arm is idle a background thread keeps it fed.
 """
@@ -56,6 +57,9 @@ log = logging.getLogger(__name__)
 _BOUNDARY_TOLERANCE_M = 1e-4
 _ARRIVED_M = 2e-4
 _ARRIVED_RAD = 2e-3
+_PROGRESS_M = 2e-4
+_PROGRESS_RAD = 5e-3
+"""Least approach to a move's target that counts as progress (above the TCP pose's noise)."""
 _CLOCK_DRIFT = 1e-3
 """How fast (s/s) the RTDE clock offset may grow: follows a controller clock running slow."""
 _MOVE_POLL_S = 0.01
@@ -103,6 +107,8 @@ class URArm(Component):
         command_timeout_s: float = Field(default=0.3, gt=0.0)
         connect_timeout_s: float = Field(default=10.0, gt=0.0)
         move_timeout_margin_s: float = Field(default=2.0, gt=0.0)
+        """A move that comes no closer to its target (by ``_PROGRESS_M`` or ``_PROGRESS_RAD`` of
+        yaw) for this long is stopped."""
         watchdog_min_hz: float = Field(default=2.0, gt=0.0)
         """RTDE watchdog: the controller stops the arm without input this often."""
         upload_script: bool = True
@@ -339,9 +345,8 @@ class URArm(Component):
 
         The target must be inside the workspace and the speed is capped. The move is started
         asynchronously and supervised here (freshness, protective stop, watchdog) until the
-        TCP is within ``_ARRIVED_M`` and ``_ARRIVED_RAD`` (yaw) of the target; after its
-        expected duration plus ``move_timeout_margin_s`` the arm is stopped and
-        ``HardwareError`` raised.
+        TCP is within ``_ARRIVED_M`` and ``_ARRIVED_RAD`` (yaw) of the target; when it has come
+        no closer for ``move_timeout_margin_s`` the arm is stopped and ``HardwareError`` raised.
         """
         target = np.asarray(pose, dtype=np.float64)
         if target.shape != (4,) or not np.all(np.isfinite(target)):
@@ -356,29 +361,42 @@ class URArm(Component):
         speed = min(speed_mps or self.max_speed_mps, self.max_speed_mps)
         self._check_fresh()
         self._refuse_if_stopped()
-        start = np.asarray(self._receive.getActualTCPPose(), dtype=np.float64)
-        distance_m = float(np.linalg.norm(target[:3] - start[:3]))
-        deadline_s = time.monotonic() + distance_m / speed + self.config.move_timeout_margin_s
         tcp = tcp_pose(target).tolist()
         acceleration = self.config.acceleration_mps2
         self._streaming = False
         if not self._call(lambda c: c.moveL(tcp, speed, acceleration, True), "moveL"):
             self._refuse_if_stopped()
             raise HardwareError("the UR controller refused moveL (is the control script running?)")
-        while not self._arrived(target):
-            if time.monotonic() > deadline_s:
+        self._supervise_move(target)
+
+    def _supervise_move(self, target: FloatArray) -> None:
+        """Wait until the TCP is at target [4]; stop the arm when it stops approaching it."""
+        closest = np.full(2, np.inf)
+        progress = np.array([_PROGRESS_M, _PROGRESS_RAD])
+        approached_s = time.monotonic()
+        while True:
+            error = self._move_error(target)
+            if error[0] < _ARRIVED_M and error[1] < _ARRIVED_RAD:
+                return
+            if np.any(error < closest - progress):
+                closest, approached_s = np.minimum(closest, error), time.monotonic()
+            elif time.monotonic() - approached_s > self.config.move_timeout_margin_s:
                 self.stop()
-                raise HardwareError(f"moveL did not reach {target[:3].tolist()} in time")
+                raise HardwareError(
+                    f"moveL did not reach {target.tolist()}: no closer for "
+                    f"{self.config.move_timeout_margin_s} s, {error[0] * 1e3:.1f} mm and "
+                    f"{np.degrees(error[1]):.1f} deg away"
+                )
             time.sleep(_MOVE_POLL_S)
 
-    def _arrived(self, target: FloatArray) -> bool:
-        """Supervise a move: fresh data, no protective stop; True once at target [4]."""
+    def _move_error(self, target: FloatArray) -> FloatArray:
+        """Supervise a move (fresh data, no protective stop); the TCP's distance to target [4]:
+        [2] = (position m, |yaw| rad)."""
         self._check_fresh()
         self._refuse_if_stopped()
         pose = arm_pose(np.asarray(self._receive.getActualTCPPose(), dtype=np.float64))
         yaw_error_rad = (pose[3] - target[3] + np.pi) % (2.0 * np.pi) - np.pi
-        at_position = float(np.linalg.norm(pose[:3] - target[:3])) < _ARRIVED_M
-        return at_position and abs(yaw_error_rad) < _ARRIVED_RAD
+        return np.array([np.linalg.norm(pose[:3] - target[:3]), abs(yaw_error_rad)])
 
     def stop(self) -> None:
         """Stop all motion: ``speedStop`` (streamed velocities), then ``stopL`` (a ``moveL``).
