@@ -5,6 +5,9 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO_OUT ?= out/demo
+# Extra pip arguments for torch, e.g. TORCH_PIP_ARGS="--index-url https://download.pytorch.org/whl/cpu"
+# where the default index would give a CUDA build.
+TORCH_PIP_ARGS ?=
 # System libraries the wheels need (open3d: libusb, libgomp, libGL).
 SYSTEM_LIBS := libusb-1.0-0 libgomp1 libgl1
 
@@ -25,7 +28,7 @@ $(STAMP): pyproject.toml | system-libs
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade "pip>=23" "setuptools>=77" wheel
 	# The CPU build of torch, pinned: an unpinned torch pulls gigabytes of CUDA packages.
-	$(BIN)/pip install -q "torch==2.13.0"
+	$(BIN)/pip install -q $(TORCH_PIP_ARGS) "torch==2.13.0"
 	$(BIN)/pip install -q -e ".[dev]"
 	touch $(STAMP)
 
