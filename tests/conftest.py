@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -87,3 +88,13 @@ def fake_run(monkeypatch: pytest.MonkeyPatch, code: int) -> list[list[str]]:
 
     monkeypatch.setattr(vistac.cli, "main", run)
     return calls
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float = 2.0) -> bool:
+    """Poll ``predicate`` every 10 ms until it holds (True) or ``timeout_s`` passes (False)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False

@@ -12,6 +12,7 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from conftest import wait_for
 from emulators.papillarray import PapillArrayPty
 from vistac.errors import HardwareError, SafetyError
 from vistac.pluginmanager import Plugins
@@ -29,15 +30,6 @@ def stream() -> Iterator[PapillArrayPty]:
 
 def build(plugins: Plugins, tmp_path: Path, components: dict[str, Any]) -> Any:
     return build_components(components, tmp_path, plugins=plugins)
-
-
-def wait_for(predicate: Any, timeout_s: float = 2.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def test_frame_round_trip_and_resynchronisation() -> None:

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import wait_for
 from emulators.loopback import next_loopback
 from emulators.ur_controller import URControllerProcess
 from vistac.errors import HardwareError, SafetyError
@@ -42,15 +43,6 @@ def open_arm(plugins: Plugins | None, tmp_path: Path, host: str, **options: Any)
         yield arm
     finally:
         arm.close()
-
-
-def wait_for(predicate: Any, timeout_s: float = 2.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def test_frames_round_trip() -> None:
