@@ -8,10 +8,12 @@ DEMO_OUT ?= out/demo
 # Extra pip arguments for torch, e.g. TORCH_PIP_ARGS="--index-url https://download.pytorch.org/whl/cpu"
 # where the default index would give a CUDA build.
 TORCH_PIP_ARGS ?=
+# The versions the tests and docs/results.md were measured with (`make lock` rewrites it).
+CONSTRAINTS := constraints.txt
 # System libraries the wheels need (open3d: libusb, libgomp, libGL).
 SYSTEM_LIBS := libusb-1.0-0 libgomp1 libgl1
 
-.PHONY: setup system-libs demo test test-all bench lint clean
+.PHONY: setup system-libs demo test test-all bench lint lock clean
 
 setup: $(STAMP)
 
@@ -24,12 +26,12 @@ system-libs:
 	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq $(SYSTEM_LIBS) >/dev/null; \
 	fi
 
-$(STAMP): pyproject.toml | system-libs
+$(STAMP): pyproject.toml $(CONSTRAINTS) | system-libs
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade "pip>=23" "setuptools>=77" wheel
 	# The CPU build of torch, pinned: an unpinned torch pulls gigabytes of CUDA packages.
 	$(BIN)/pip install -q $(TORCH_PIP_ARGS) "torch==2.13.0"
-	$(BIN)/pip install -q -e ".[dev]"
+	$(BIN)/pip install -q -c $(CONSTRAINTS) -e ".[dev]"
 	touch $(STAMP)
 
 # Look, fit the shape, then push until the belief converges (GNN trained by
@@ -50,6 +52,11 @@ bench: setup
 lint: setup
 	$(BIN)/ruff check core plugins tests benchmarks examples
 	$(BIN)/mypy core plugins
+
+# After changing a dependency: pin what the set-up environment holds now (torch is pinned above).
+lock:
+	{ echo "# pip constraints for make setup: written by make lock"; \
+	  $(BIN)/pip freeze --exclude-editable | grep -iv '^torch=='; } > $(CONSTRAINTS)
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache
