@@ -107,8 +107,8 @@ class URArm(Component):
         command_timeout_s: float = Field(default=0.3, gt=0.0)
         connect_timeout_s: float = Field(default=10.0, gt=0.0)
         move_timeout_margin_s: float = Field(default=2.0, gt=0.0)
-        """A move that comes no closer to its target (by ``_PROGRESS_M`` or ``_PROGRESS_RAD`` of
-        yaw) for this long is stopped."""
+        """A move that comes no closer to its target (by 0.2 mm, or 0.3 deg of yaw) for this
+        long is stopped."""
         watchdog_min_hz: float = Field(default=2.0, gt=0.0)
         """RTDE watchdog: the controller stops the arm without input this often."""
         upload_script: bool = True
