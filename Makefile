@@ -55,8 +55,10 @@ lint: setup
 
 # After changing a dependency: pin what the set-up environment holds now (torch is pinned above).
 lock:
-	{ echo "# pip constraints for make setup: written by make lock"; \
-	  $(BIN)/pip freeze --exclude-editable | grep -iv '^torch=='; } > $(CONSTRAINTS)
+	@test -x $(BIN)/pip || { echo "no $(VENV) to pin: run make setup first" >&2; exit 1; }
+	set -o pipefail; { echo "# pip constraints for make setup: written by make lock"; \
+	  $(BIN)/pip freeze --exclude-editable | grep -iv '^torch=='; } > $(CONSTRAINTS).new
+	mv $(CONSTRAINTS).new $(CONSTRAINTS)
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache
