@@ -4,6 +4,8 @@ reused when the same call already finished there (``vistac eval`` of touch and g
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
 import io
 import json
 import logging
@@ -15,7 +17,8 @@ from vistac.errors import ConfigError
 log = logging.getLogger(__name__)
 
 STAMP = "eval_args.json"
-"""What a finished run in a run folder was asked for (its arguments), written when it ends."""
+"""What a finished run in a run folder was asked for (its arguments) and the code that ran it,
+written when it ends."""
 INTERRUPTED_EXIT_CODE = 130
 """What a run stopped by Ctrl-C exits with (the Scheduler turns the interrupt into it)."""
 
@@ -39,24 +42,44 @@ def run_quietly(args: list[str]) -> tuple[int, str]:
     return code, printed.getvalue()
 
 
+@functools.cache
+def code_fingerprint() -> str:
+    """SHA-256 of vistac's Python sources (the core and the built-in plugins): a run made by
+    other code is not reused."""
+    import vistac
+    import vistac.plugins
+
+    digest = hashlib.sha256()
+    for package in (vistac, vistac.plugins):
+        root = Path(package.__file__).parent
+        for path in sorted(root.rglob("*.py")):
+            digest.update(str(path.relative_to(root)).encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
 def stamp_of(run_dir: Path) -> Any:
     """The stamp of the finished run in ``run_dir`` (what it was asked for), or None when
-    there is none (never run, running, or failed where failures are not stamped)."""
+    there is none (never run, running, failed where failures are not stamped, or run by
+    other code than this)."""
     stamp = run_dir / STAMP
     if not (stamp.is_file() and (run_dir / "summary.json").is_file()):
         return None
-    return json.loads(stamp.read_text(encoding="utf-8"))
+    stamped = json.loads(stamp.read_text(encoding="utf-8"))
+    if not isinstance(stamped, dict) or stamped.get("code") != code_fingerprint():
+        return None
+    return stamped.get("value")
 
 
 def set_stamp(run_dir: Path, value: Any) -> None:
-    """Stamp ``run_dir``'s run as finished with ``value``, or, with None, remove the stamp
-    before the folder's run is replaced (so that a run failing there is never reused as the
-    one stamped before)."""
+    """Stamp ``run_dir``'s run as finished with ``value`` by this code, or, with None, remove
+    the stamp before the folder's run is replaced (so that a run failing there is never reused
+    as the one stamped before)."""
     stamp = run_dir / STAMP
     if value is None:
         stamp.unlink(missing_ok=True)
     else:
-        stamp.write_text(json.dumps(value), encoding="utf-8")
+        stamp.write_text(json.dumps({"value": value, "code": code_fingerprint()}), "utf-8")
 
 
 def run_once(args: list[str], run_dir: Path, who: str) -> tuple[int, dict[str, Any] | None]:

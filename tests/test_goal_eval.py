@@ -165,3 +165,20 @@ def test_an_interrupted_run_stops_the_campaign_and_is_never_reused(
     assert not (run_dir / "eval_args.json").exists()
     calls = fake_run(monkeypatch, 0)  # the folder holds the interrupted run, not the first
     assert run_once(first, run_dir, "goal eval")[0] == 0 and len(calls) == 1
+
+
+def test_a_run_made_by_other_code_is_not_reused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The stamp holds the code's fingerprint: after a change to vistac's sources the same
+    arguments run again (before, an evaluation mixed runs of old and new code)."""
+    from vistac import campaign
+
+    run_dir = tmp_path / "run"
+    args = ["-q", "run", "skill.yaml", "--out", str(run_dir), "--seed", "0"]
+    calls = fake_run(monkeypatch, 0)
+    assert run_once(args, run_dir, "goal eval")[0] == 0
+    assert run_once(args, run_dir, "goal eval")[0] == 0 and len(calls) == 1  # reused
+    monkeypatch.setattr(campaign, "code_fingerprint", lambda: "other sources")
+    assert run_once(args, run_dir, "goal eval")[0] == 0 and len(calls) == 2
+    assert campaign.stamp_of(run_dir) == {"args": args, "exit_code": 0}
