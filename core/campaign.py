@@ -65,7 +65,11 @@ def stamp_of(run_dir: Path) -> Any:
     stamp = run_dir / STAMP
     if not (stamp.is_file() and (run_dir / "summary.json").is_file()):
         return None
-    stamped = json.loads(stamp.read_text(encoding="utf-8"))
+    try:
+        stamped = json.loads(stamp.read_text(encoding="utf-8"))
+    except json.JSONDecodeError:
+        log.warning("%s is not a stamp this code wrote: running %s again", stamp, run_dir)
+        return None
     if not isinstance(stamped, dict) or stamped.get("code") != code_fingerprint():
         return None
     return stamped.get("value")

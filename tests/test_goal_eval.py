@@ -182,3 +182,5 @@ def test_a_run_made_by_other_code_is_not_reused(
     monkeypatch.setattr(campaign, "code_fingerprint", lambda: "other sources")
     assert run_once(args, run_dir, "goal eval")[0] == 0 and len(calls) == 2
     assert campaign.stamp_of(run_dir) == {"args": args, "exit_code": 0}
+    (run_dir / campaign.STAMP).write_text("{not json")  # cut short, say: run again
+    assert run_once(args, run_dir, "goal eval")[0] == 0 and len(calls) == 3
