@@ -264,10 +264,10 @@ class ProcessModel(Protocol):
     ``predict(states [..., C, n], inputs: ProcessInput, dt_s) -> Prediction`` with
     ``Prediction.pose [..., C, 6 L]``, ``force_n [..., C, 2]`` and ``process_var``; see
     ``vistac.plugins.filters.state`` for the state layout. ``n_links`` is the number of links
-    the model supports, or None for any number (the GNN).
+    the model supports, the tuple of numbers it supports, or None for any number (the GNN).
     """
 
-    n_links: int | None
+    n_links: int | tuple[int, ...] | None
 
     def predict(self, states: Any, inputs: Any, dt_s: float) -> Any: ...
 

@@ -67,6 +67,12 @@ PROCESS_MODELS = {
     "gnn mirror_average": {"plugin": "filters.gnn", "with": {"hidden": 16, "mirror_average": True}},
     "ff 1 link": {"plugin": "filters.ff", "with": {"hidden": 16, "n_links": 1}},
     "ff 2 links": {"plugin": "filters.ff", "with": {"hidden": 16, "n_links": 2}},
+    "ff shipped, by link count": {
+        "plugin": "filters.ff",
+        "with": {"hidden": 32, "checkpoints": {
+            n: str(SKILLS / f"checkpoints/ff{n}/ff_push.pt") for n in (1, 2)
+        }},
+    },
     "analytical": {"plugin": "filters.analytical"},
 }
 

@@ -543,7 +543,7 @@ def test_plan_runs_sets_model_and_selector_per_variant(tmp_path: Path) -> None:
     ]
     gnn = 'components.model={"plugin": "filters.gnn", "with": {"checkpoint": "%s", "hidden": 32}}'
     gnn %= folder / "gnn_push.pt"
-    ff = ('components.model={"plugin": "filters.ff", "with": {"checkpoint": "%s", "n_links": 1, '
+    ff = ('components.model={"plugin": "filters.ff", "with": {"checkpoints": {"1": "%s"}, '
           '"hidden": 16}}') % (folder / "ff_push.pt")  # fmt: skip
     info_gain = ('components.planner={"plugin": "actions.info_gain", '
                  '"with": {"horizon_s": 2.5, "rate_hz": 15.0}}')  # fmt: skip
@@ -560,10 +560,9 @@ def test_plan_runs_sets_model_and_selector_per_variant(tmp_path: Path) -> None:
         [*common, gnn, refined, random, "components.filter.with.estimate_parameters=false"],
     ]
     assert [p.overrides for p in plans[:6]] == expected
-    assert all(p.skipped is None for p in plans[:6])
-    skipped = {p.variant.key: p.skipped for p in plans[6:] if p.skipped}
-    assert set(skipped) == {"a-ff"}
-    assert "no FF checkpoint for 2 link(s)" in skipped["a-ff"]
+    # The FF of every link count in the folder: the fit, not the true object, picks one.
+    assert [p.overrides[4] for p in plans[6:] if "filters.ff" in p.overrides[4]] == [ff]
+    assert all(p.skipped is None for p in plans)
     assert run_dir_of(tmp_path, plans[1]) == tmp_path / "runs/rect2/u-gnn"
 
 

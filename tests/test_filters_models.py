@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from pydantic import ValidationError
 from scipy.optimize import least_squares, minimize, root
 from simctx import TestContext
 from torch import Tensor
@@ -352,6 +353,45 @@ def test_ff_rejects_another_link_count(tmp_path: Path) -> None:
     states, inputs = scenario((), 3)
     with pytest.raises(ValueError, match=r"n_links=2 \(state size 21\), got state size 32"):
         model.predict(states, inputs, DT_S)
+
+
+def test_ff_with_a_checkpoint_per_link_count_predicts_with_the_states_count(
+    tmp_path: Path,
+) -> None:
+    """`checkpoints`: one net per link count; the states' link count picks the net, so an
+    object fitted with 1 or 2 links is filtered by that count's FF (the fit decides, not the
+    skill); another count is refused, naming the counts there are."""
+    singles = {n: build(FFProcessModel, tmp_path, seed=n, hidden=16, n_links=n) for n in (1, 2)}
+    for n, single in singles.items():
+        single.save_checkpoint(tmp_path / f"ff{n}.pt")
+    both = build(FFProcessModel, tmp_path, hidden=16, checkpoints={1: "ff1.pt", 2: "ff2.pt"})
+    assert both.n_links == (1, 2)
+    for n, single in singles.items():
+        states, inputs = scenario((), n)
+        expected, got = single.predict(states, inputs, DT_S), both.predict(states, inputs, DT_S)
+        for first, second in zip(parts(expected), parts(got), strict=True):
+            assert torch.equal(first, second)
+    states, inputs = scenario((), 3)
+    with pytest.raises(ValueError, match=r"no feed-forward net for 3 link\(s\); .* 1, 2 link"):
+        both.predict(states, inputs, DT_S)
+    with pytest.raises(ConfigError, match="one net per link count"):
+        both.save_checkpoint(tmp_path / "both.pt")
+
+
+def test_ff_checkpoints_are_checked_per_link_count(tmp_path: Path) -> None:
+    build(FFProcessModel, tmp_path, hidden=16, n_links=1).save_checkpoint(tmp_path / "ff1.pt")
+    with pytest.raises(DataError, match=r"ff1\.pt does not match .*n_links: saved 1, configured 2"):
+        build(FFProcessModel, tmp_path, hidden=16, checkpoints={2: "ff1.pt"})
+    with pytest.raises(ConfigError, match=r"gone\.pt"):
+        build(FFProcessModel, tmp_path, hidden=16, checkpoints={1: "gone.pt"})
+    for options, why in [
+        ({"checkpoints": {1: "ff1.pt"}, "n_links": 1}, "drop `n_links`"),
+        ({"checkpoints": {1: "ff1.pt"}, "checkpoint": "ff1.pt"}, "drop `checkpoint`"),
+        ({"checkpoints": {}}, "`checkpoints` is empty"),
+        ({"checkpoints": {9: "ff1.pt"}}, "less than or equal to 8"),
+    ]:
+        with pytest.raises(ValidationError, match=why):
+            build(FFProcessModel, tmp_path, hidden=16, **options)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -417,6 +417,30 @@ def test_explore_push_runs_with_each_process_model(tmp_path: Path, model: str) -
     assert summary["errors"]["com_x_0"] == pytest.approx(abs(belief["com_x_0"]["mean"] - local[0]))
 
 
+FF_BY_LINKS = (
+    "components.model={plugin: filters.ff, with: {hidden: 32, checkpoints: "
+    "{1: checkpoints/ff1/ff_push.pt, 2: checkpoints/ff2/ff_push.pt}}}"
+)
+
+
+@pytest.mark.parametrize(("name", "links"), [("rect2", 1), ("artic_rect_rect", 2)])
+def test_one_ff_skill_filters_objects_of_each_shipped_link_count(
+    tmp_path: Path, name: str, links: int
+) -> None:
+    """`filters.ff` with a checkpoint per link count: the same skill filters a one-link and
+    a two-link object, each with the FF of its fitted link count."""
+    out = tmp_path / "run"
+    result = run_vistac(
+        "-q", "run", str(SKILLS / "explore_push.yaml"), "--out", str(out), *EXPLORE_SHORT,
+        "--set", FF_BY_LINKS, "--set", f"components.world.with.object=objects/{name}.yaml",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    belief = _summary(out)["belief"]
+    assert isinstance(belief, dict)
+    assert {f"m_{link}" for link in range(links)} == {k for k in belief if k.startswith("m_")}
+    assert all(np.isfinite(entry["mean"]) for entry in belief.values())
+
+
 def test_a_push_blocked_on_its_way_down_is_not_carried_out_and_another_is_chosen(
     tmp_path: Path, cli: Callable[..., tuple[int, str, str]]
 ) -> None:

@@ -53,7 +53,6 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from vistac.errors import ConfigError, DataError
-from vistac.objects import load_object
 from vistac.plugins.filters.data import Trajectory, describe, load_trajectories, stack_equal_length
 from vistac.plugins.filters.evaluate import (
     ff_checkpoint,
@@ -313,7 +312,7 @@ class Collector:
                          f"{self.repeat}.max={count}", f"{self.repeat}.until=null",
                          planner_override(selection, self.skill_data)]  # fmt: skip
             if model is not None:
-                overrides += self._model_overrides(*model, path)
+                overrides += self._model_overrides(*model)
             config = self.config.model_copy(
                 update={"collect_overrides": tuple(overrides), "seed": seed, "runs_per_object": 1}
             )
@@ -324,8 +323,8 @@ class Collector:
         return trajectories
 
     @staticmethod
-    def _model_overrides(name: ModelName, kind: Interaction, work: Path, path: Path) -> list[str]:
-        override, why = model_override(name, load_object(path), work, kind)
+    def _model_overrides(name: ModelName, kind: Interaction, work: Path) -> list[str]:
+        override, why = model_override(name, work, kind)
         if override is None:
             raise DataError(f"active training: cannot select with {name}: {why}")
         noise = work / f"obs_noise_{kind}.pt"

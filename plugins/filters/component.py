@@ -485,10 +485,13 @@ class DualFilterComponent(Component):
         self._reported_var = com_discrepancy_var(
             scene.shape, self.layout, self.config.com_discrepancy_m
         )
-        if self.model.n_links not in (None, self.layout.n_links):
+        handled = self.model.n_links
+        counts = handled if isinstance(handled, tuple) else (handled,)
+        if handled is not None and self.layout.n_links not in counts:
             raise ConfigError(
-                f"the process model handles {self.model.n_links} link(s) but the object has "
-                f"{self.layout.n_links}; use filters.gnn or a model trained for this many links"
+                f"the process model handles {' or '.join(map(str, counts))} link(s) but the object "
+                f"was fitted with {self.layout.n_links}; use filters.gnn or a model trained "
+                "for this many links"
             )
         if self.config.sigma_points <= self.layout.size:
             log.warning(

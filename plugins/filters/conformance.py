@@ -64,12 +64,13 @@ def reference_input(n_links: int, link: int, is_pull: float) -> tuple[Tensor, Pr
 
 def check_process_model(model: Any) -> None:
     """Assert the promises above for every link count the model supports (1 and 2 for a
-    model of any count, ``n_links`` = None), each acted link, push and pull."""
+    model of any count, ``n_links`` = None; each of a tuple), each acted link, push and pull."""
     n_links = getattr(model, "n_links", "missing")
-    assert n_links is None or (isinstance(n_links, int) and n_links >= 1), (
-        f"n_links must be None (any count) or a positive int, got {n_links!r}"
+    counts = n_links if isinstance(n_links, tuple) else (1, 2) if n_links is None else (n_links,)
+    assert all(isinstance(n, int) and n >= 1 for n in counts) and counts, (
+        f"n_links must be None (any count), a positive int or a tuple of them, got {n_links!r}"
     )
-    for count in (1, 2) if n_links is None else (n_links,):
+    for count in counts:
         for link in range(count):
             for is_pull in (0.0, 1.0):
                 _check_case(model, count, link, is_pull)

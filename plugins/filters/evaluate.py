@@ -70,6 +70,8 @@ from vistac.types import GaussianBelief
 log = logging.getLogger(__name__)
 
 MODELS: tuple[str, ...] = ("gnn", "ff", "analytical")
+MAX_FF_LINKS = 8
+"""The most links ``filters.ff`` takes (its ``n_links`` bound)."""
 INFO_GAIN_HORIZON_S = 2.5
 """Look-ahead of ``actions.info_gain`` (paper 1, IV-B2; skills/explore_active.yaml)."""
 
@@ -645,25 +647,32 @@ def ff_checkpoint(folder: Path, kind: str, n_links: int) -> Path | None:
     return None
 
 
+def ff_checkpoints(folder: Path, kind: str) -> dict[int, Path]:
+    """Every link count with an FF checkpoint in ``folder`` (:func:`ff_checkpoint`)."""
+    found = {n: ff_checkpoint(folder, kind, n) for n in range(1, MAX_FF_LINKS + 1)}
+    return {n: path for n, path in found.items() if path is not None}
+
+
 def model_override(
-    model: str, spec: ObjectSpec, folder: Path, kind: str, learned: dict[str, Any] | None = None
+    model: str, folder: Path, kind: str, learned: dict[str, Any] | None = None
 ) -> tuple[str | None, str]:
-    """The ``components.model=...`` override of ``model`` for ``spec``, or (None, why not);
-    ``learned`` options (:func:`learned_model_options`) go to the GNN and FF models."""
-    n_links = len(spec.links)
+    """The ``components.model=...`` override of ``model``, or (None, why not); ``learned``
+    options (:func:`learned_model_options`) go to the GNN and FF models. The FF gets every
+    link count's checkpoint in ``folder``: the fitted object's link count picks the net."""
     if model == "analytical":
         return "components.model=" + json.dumps({"plugin": "filters.analytical"}), ""
     if model == "gnn":
-        path: Path | None = folder / f"gnn_{kind}.pt"
-        if path is None or not path.is_file():
+        path = folder / f"gnn_{kind}.pt"
+        if not path.is_file():
             return None, f"no GNN checkpoint {path}"
         settings: dict[str, Any] = {**(learned or {}), "checkpoint": str(path.resolve())}
     else:
-        path = ff_checkpoint(folder, kind, n_links)
-        if path is None:
-            want = f"ff{n_links}/ff_{kind}.pt"
-            return None, f"no FF checkpoint for {n_links} link(s) in {folder} ({want})"
-        settings = {**(learned or {}), "checkpoint": str(path.resolve()), "n_links": n_links}
+        paths = ff_checkpoints(folder, kind)
+        if not paths:
+            return None, f"no FF checkpoint in {folder} (ff1/ff_{kind}.pt, ff2/ff_{kind}.pt, ...)"
+        path = paths[min(paths)]
+        checkpoints = {str(n): str(p.resolve()) for n, p in paths.items()}
+        settings = {**(learned or {}), "checkpoints": checkpoints}
     settings |= {k: v for k, v in _architecture(path).items() if k == "hidden"}
     return "components.model=" + json.dumps({"plugin": f"filters.{model}", "with": settings}), ""
 
@@ -700,7 +709,7 @@ def plan_runs(options: EvalOptions, objects: Sequence[Path], kind: str) -> list[
         spec = load_object(path)
         for variant in chosen_variants(options):
             plan = RunPlan(path, spec, variant)
-            model, why = model_override(plan.model, spec, folder, kind, learned)
+            model, why = model_override(plan.model, folder, kind, learned)
             if model is None:
                 plan.skipped = why
             else:

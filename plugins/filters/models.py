@@ -14,17 +14,23 @@ import json
 import logging
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import torch
-from pydantic import Field
+from pydantic import Field, model_validator
 from torch import Tensor, nn
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
 from vistac.errors import ConfigError, ConfigIssue, DataError
 from vistac.plugins.filters.analytical import Pressure, PushSettings, analytical_prediction
 from vistac.plugins.filters.chain import chain_step
 from vistac.plugins.filters.mirror import mirror_averaged
-from vistac.plugins.filters.nets import MLP, FeedForwardProcessNet, GraphProcessNet, layout_of
+from vistac.plugins.filters.nets import (
+    MLP,
+    FeedForwardByLinks,
+    FeedForwardProcessNet,
+    GraphProcessNet,
+    layout_of,
+)
 from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput
 
 log = logging.getLogger(__name__)
@@ -169,7 +175,7 @@ class _LearnedProcessModel(Component):
 
     kind = "process_model"
     plugin: ClassVar[str]
-    n_links: int | None
+    n_links: int | tuple[int, ...] | None
     net: nn.Module
     _look_ahead_options: ClassVar[dict[str, Any]] = {}
     """Keyword arguments of the net's forward in look-aheads."""
@@ -257,24 +263,62 @@ class GNNProcessModel(_LearnedProcessModel):
 
 
 class FFProcessModel(_LearnedProcessModel):
-    """``filters.ff``: the feed-forward baseline for a fixed number of links."""
+    """``filters.ff``: the feed-forward baseline for a fixed number of links, or, with
+    ``checkpoints``, one net per link count, picked by the fitted object's link count."""
 
     plugin = "filters.ff"
 
     class Config(LearnedModelConfig):
         n_links: int = Field(default=1, ge=1, le=8)
+        checkpoints: dict[Annotated[int, Field(ge=1, le=8)], SkillPath] | None = Field(
+            None, description="one checkpoint per link count, e.g. {1: checkpoints/ff1/"
+            "ff_push.pt, 2: checkpoints/ff2/ff_push.pt}: the net of the fitted object's link "
+            "count predicts, so the shape fit, not the skill, decides; replaces `checkpoint` "
+            "and `n_links`",
+        )
+
+        @model_validator(mode="after")
+        def _one_source(self) -> FFProcessModel.Config:
+            if self.checkpoints is None:
+                return self
+            both = {"checkpoint", "n_links"} & self.model_fields_set
+            if both:
+                raise ValueError(
+                    f"`checkpoints` gives the link counts and their weights; drop "
+                    f"{' and '.join(f'`{key}`' for key in sorted(both))}"
+                )
+            if not self.checkpoints:
+                raise ValueError("`checkpoints` is empty; give at least one link count")
+            return self
 
     config: Config
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
-        self.n_links = config.n_links
+        counts = config.checkpoints
+        self.n_links = config.n_links if counts is None else tuple(sorted(counts))
         super().__init__(config, ctx)
+        if isinstance(self.net, FeedForwardByLinks):
+            for n, path in sorted((counts or {}).items()):
+                load_checkpoint(self.net.net(n), Path(path), self.plugin, self._of(n))
 
     def _build(self) -> nn.Module:
+        if isinstance(self.n_links, tuple):
+            return FeedForwardByLinks(self.n_links, self.config.hidden)
         return FeedForwardProcessNet(self.config.n_links, self.config.hidden)
 
+    def _of(self, n_links: int) -> dict[str, int]:
+        return {"hidden": self.config.hidden, "n_links": n_links}
+
     def architecture(self) -> dict[str, int]:
-        return {"hidden": self.config.hidden, "n_links": self.config.n_links}
+        return self._of(self.config.n_links)
+
+    def save_checkpoint(self, path: str | Path) -> None:
+        if isinstance(self.n_links, tuple):
+            raise ConfigError(
+                "filters.ff with `checkpoints` holds one net per link count; train and save "
+                "each with `n_links` (`vistac train` does so)"
+            )
+        super().save_checkpoint(path)
 
 
 class AnalyticalProcessModel(Component):

@@ -843,3 +843,28 @@ class FeedForwardProcessNet(nn.Module):
             force_n=force_to_world(out[..., -2:], inputs),
             process_var=self.noise(inputs.tcp.shape[:-1], self.n_links).to(states.dtype),
         )
+
+
+class FeedForwardByLinks(nn.Module):
+    """One :class:`FeedForwardProcessNet` per link count; each prediction goes to the net of
+    the states' link count, so the shape fit, not the skill, decides which net runs."""
+
+    def __init__(self, link_counts: tuple[int, ...], hidden: int = 64) -> None:
+        super().__init__()
+        self.nets = nn.ModuleDict({str(n): FeedForwardProcessNet(n, hidden) for n in link_counts})
+
+    def net(self, n_links: int) -> FeedForwardProcessNet:
+        """The net for ``n_links`` links; ValueError when there is none."""
+        if str(n_links) not in self.nets:
+            raise ValueError(
+                f"no feed-forward net for {n_links} link(s); there are nets for "
+                f"{', '.join(self.nets)} link(s)"
+            )
+        net = self.nets[str(n_links)]
+        assert isinstance(net, FeedForwardProcessNet)
+        return net
+
+    def forward(self, states: Tensor, inputs: ProcessInput, dt_s: float) -> Prediction:
+        """states [..., C, 11 L - 1] -> the Prediction of the net for L links."""
+        prediction: Prediction = self.net(layout_of(states).n_links)(states, inputs, dt_s)
+        return prediction
