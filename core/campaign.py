@@ -9,10 +9,12 @@ import hashlib
 import io
 import json
 import logging
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 from vistac.errors import ConfigError
+from vistac.skill import apply_overrides, read_yaml
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +60,46 @@ def code_fingerprint() -> str:
     return digest.hexdigest()
 
 
+def named_files_digest(skill: Path, overrides: Sequence[str]) -> str:
+    """SHA-256 of the skill file and of every file a value of the skill, with ``overrides``
+    applied, names (checkpoints, objects, priors; a relative path from the skill's folder, as
+    the skill takes it): a run whose checkpoint was retrained in place is not reused. A skill
+    that cannot be read counts as its bytes alone (its run fails anyway)."""
+    try:
+        data = apply_overrides(read_yaml(skill) or {}, list(overrides))
+    except ConfigError:
+        data = {}
+    files = {skill.resolve()} | {path.resolve() for path in _named_files(data, skill.parent)}
+    digest = hashlib.sha256()
+    for path in sorted(files):
+        digest.update(str(path).encode())
+        with contextlib.suppress(OSError):
+            digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _named_files(value: Any, base: Path) -> Iterator[Path]:
+    """Every existing file a string in ``value`` (nested mappings and lists) names."""
+    if isinstance(value, dict):
+        for item in value.values():
+            yield from _named_files(item, base)
+    elif isinstance(value, list):
+        for item in value:
+            yield from _named_files(item, base)
+    elif isinstance(value, str) and 0 < len(value) < 4096:
+        with contextlib.suppress(OSError, ValueError):  # not a path the system takes
+            if (base / value).is_file():
+                yield base / value
+
+
+def args_digest(args: Sequence[str]) -> str:
+    """:func:`named_files_digest` of the skill and ``--set`` overrides of ``vistac ARGS``
+    (a ``run``)."""
+    skill = Path(args[list(args).index("run") + 1])
+    overrides = [args[i + 1] for i, arg in enumerate(args[:-1]) if arg == "--set"]
+    return named_files_digest(skill, overrides)
+
+
 def stamp_of(run_dir: Path) -> Any:
     """The stamp of the finished run in ``run_dir`` (what it was asked for), or None when
     there is none (never run, running, failed where failures are not stamped, or run by
@@ -93,8 +135,9 @@ def run_once(args: list[str], run_dir: Path, who: str) -> tuple[int, dict[str, A
     ConfigError when the skill with these arguments is not valid: every other run of the
     campaign would fail the same way. KeyboardInterrupt when the run was interrupted."""
     summary_path = run_dir / "summary.json"
+    asked = {"args": args, "inputs": args_digest(args)}
     finished = stamp_of(run_dir)
-    if isinstance(finished, dict) and finished.get("args") == args:
+    if isinstance(finished, dict) and {key: finished.get(key) for key in asked} == asked:
         return int(finished["exit_code"]), json.loads(summary_path.read_text("utf-8"))
     set_stamp(run_dir, None)
     code, printed = run_quietly(args)
@@ -104,5 +147,5 @@ def run_once(args: list[str], run_dir: Path, who: str) -> tuple[int, dict[str, A
                           "above); fix the skill or the --set options")  # fmt: skip
     if not summary_path.is_file():
         return code, None
-    set_stamp(run_dir, {"args": args, "exit_code": code})
+    set_stamp(run_dir, asked | {"exit_code": code})
     return code, json.loads(summary_path.read_text(encoding="utf-8"))

@@ -778,7 +778,9 @@ def test_a_replay_is_reused_only_for_the_same_finished_lead_run(
 ) -> None:
     """The replay's stamp holds the lead's arguments and summary: a lead rerun with another
     seed, or giving other pushes, is replayed again; a failed lead leaves nothing to replay
-    (before, the old replay was reused in all three cases)."""
+    (before, the old replay was reused in all three cases). A checkpoint the replay's model
+    names, retrained in place, is replayed again too; the lead, which does not name it, is
+    reused."""
     import vistac.pluginmanager
     import vistac.replay
 
@@ -795,20 +797,26 @@ def test_a_replay_is_reused_only_for_the_same_finished_lead_run(
     rect2 = ROOT / "skills/objects/rect2.yaml"
     variants = {variant.key: variant for variant in VARIANTS}
     lead = RunPlan(rect2, load_object(rect2), variants["a-gnn"], overrides=["a=1"])
-    paired = RunPlan(rect2, lead.spec, variants["a-analytical"], overrides=["b=1"], lead=lead)
+    weights = tmp_path / "ff.pt"
+    weights.write_bytes(b"trained once")
+    paired = RunPlan(rect2, lead.spec, variants["a-analytical"], lead=lead,
+                     overrides=[f"components.model.with.checkpoint={weights}"])  # fmt: skip
     seed_0, seed_1 = (EvalOptions(skill=ROOT / "skills/explore_push.yaml", out=tmp_path,
                                   seed=seed, paired=True) for seed in (0, 1))  # fmt: skip
-    fake_run(monkeypatch, 0)
+    runs = fake_run(monkeypatch, 0)
     for options in (seed_0, seed_0, seed_1):
         assert execute(lead, options)["status"] == "ok"
         assert replay_run(paired, options)["status"] == "ok"
     assert len(replays) == 2  # seed 0's replay reused once, then seed 1's lead replayed
     (run_dir_of(tmp_path, lead) / "summary.json").write_text('{"other": "pushes"}')
     assert replay_run(paired, seed_1)["status"] == "ok" and len(replays) == 3
+    weights.write_bytes(b"trained again")
+    assert execute(lead, seed_1)["status"] == "ok" and len(runs) == 2
+    assert replay_run(paired, seed_1)["status"] == "ok" and len(replays) == 4
     fake_run(monkeypatch, 1)
     assert execute(lead, seed_0)["status"] == "failed"
     failed = replay_run(paired, seed_0)
-    assert failed["status"] == "failed" and len(replays) == 3
+    assert failed["status"] == "failed" and len(replays) == 4
     assert failed["reason"] == "nothing to replay: A-GNN's run failed"
 
 

@@ -181,6 +181,31 @@ def test_a_run_made_by_other_code_is_not_reused(
     assert run_once(args, run_dir, "goal eval")[0] == 0 and len(calls) == 1  # reused
     monkeypatch.setattr(campaign, "code_fingerprint", lambda: "other sources")
     assert run_once(args, run_dir, "goal eval")[0] == 0 and len(calls) == 2
-    assert campaign.stamp_of(run_dir) == {"args": args, "exit_code": 0}
+    assert campaign.stamp_of(run_dir) == {
+        "args": args, "inputs": campaign.args_digest(args), "exit_code": 0
+    }
     (run_dir / campaign.STAMP).write_text("{not json")  # cut short, say: run again
     assert run_once(args, run_dir, "goal eval")[0] == 0 and len(calls) == 3
+
+
+def test_a_run_whose_named_files_changed_is_not_reused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The stamp holds a digest of the skill and of the files its values and the --set
+    overrides name: a checkpoint retrained in place, or an edited skill or object, makes the
+    same arguments run again (before, the earlier run was reused)."""
+    skill = tmp_path / "skill.yaml"
+    skill.write_text("components:\n  model: {plugin: m, with: {checkpoint: net.pt}}\n")
+    (tmp_path / "net.pt").write_bytes(b"weights 1")
+    (tmp_path / "object.yaml").write_text("mass: 1\n")
+    run_dir = tmp_path / "run"
+    args = ["-q", "run", str(skill), "--out", str(run_dir),
+            "--set", f"components.world.with.object={tmp_path / 'object.yaml'}"]  # fmt: skip
+    calls = fake_run(monkeypatch, 0)
+    for change, runs in [(None, 1), (None, 1), ("net.pt", 2), ("object.yaml", 3),
+                         ("skill.yaml", 4), (None, 4)]:  # fmt: skip
+        if change is not None:
+            path = tmp_path / change
+            path.write_bytes(path.read_bytes() + b"\n# changed\n")
+        assert run_once(args, run_dir, "goal eval")[0] == 0
+        assert len(calls) == runs, change

@@ -758,17 +758,19 @@ def run_dir_of(out: Path, plan: RunPlan) -> Path:
 
 
 def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
-    """Run the skill for ``plan`` (reusing a finished run with the same arguments).
+    """Run the skill for ``plan`` (reusing a finished run with the same arguments and the
+    same files they name: :func:`vistac.campaign.named_files_digest`).
 
     KeyboardInterrupt when the run was interrupted: Ctrl-C stops the whole evaluation."""
-    from vistac.campaign import run_quietly, set_stamp, stamp_of
+    from vistac.campaign import args_digest, run_quietly, set_stamp, stamp_of
 
     run_dir = run_dir_of(options.out, plan)
     args = ["-q", "run", str(options.skill), "--out", str(run_dir), "--overwrite"]
     args += ["--seed", str(options.seed)] if options.seed is not None else []
     for override in plan.overrides:
         args += ["--set", override]
-    if stamp_of(run_dir) == args:
+    asked = {"args": args, "inputs": args_digest(args)}
+    if stamp_of(run_dir) == asked:
         log.info("reusing %s", run_dir)
         return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0}
     log.info("running %s on %s", plan.variant.label, plan.spec.name)
@@ -778,14 +780,14 @@ def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
     if code != 0:
         return {"status": "failed", "run_dir": str(run_dir), "exit_code": code,
                 "reason": f"the skill run exited with {code}; see {run_dir}"}  # fmt: skip
-    set_stamp(run_dir, args)
+    set_stamp(run_dir, asked)
     return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0}
 
 
 def replay_run(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
     """Replay ``plan.lead``'s run with ``plan``'s overrides (reusing a finished replay of
     the same lead run: the lead's arguments and summary are part of the replay's stamp)."""
-    from vistac.campaign import set_stamp, stamp_of
+    from vistac.campaign import named_files_digest, set_stamp, stamp_of
     from vistac.pluginmanager import load_plugins
     from vistac.replay import replay
 
@@ -798,6 +800,7 @@ def replay_run(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
     args = {
         "replay": str(source), "overrides": plan.overrides, "lead": lead,
         "lead_summary": hashlib.sha256((source / "summary.json").read_bytes()).hexdigest(),
+        "inputs": named_files_digest(options.skill, plan.overrides),
     }  # fmt: skip
     if stamp_of(run_dir) == args:
         log.info("reusing %s", run_dir)
