@@ -62,7 +62,7 @@ from vistac.objects import (
     write_configurations,
 )
 from vistac.plugins.filters.component import Prior
-from vistac.plugins.filters.models import LearnedModelConfig
+from vistac.plugins.filters.models import FF_MAX_LINKS, LearnedModelConfig
 from vistac.recording import refuse_file_as_folder
 from vistac.skill import apply_overrides
 from vistac.types import GaussianBelief
@@ -70,8 +70,6 @@ from vistac.types import GaussianBelief
 log = logging.getLogger(__name__)
 
 MODELS: tuple[str, ...] = ("gnn", "ff", "analytical")
-MAX_FF_LINKS = 8
-"""The most links ``filters.ff`` takes (its ``n_links`` bound)."""
 INFO_GAIN_HORIZON_S = 2.5
 """Look-ahead of ``actions.info_gain`` (paper 1, IV-B2; skills/explore_active.yaml)."""
 
@@ -649,7 +647,7 @@ def ff_checkpoint(folder: Path, kind: str, n_links: int) -> Path | None:
 
 def ff_checkpoints(folder: Path, kind: str) -> dict[int, Path]:
     """Every link count with an FF checkpoint in ``folder`` (:func:`ff_checkpoint`)."""
-    found = {n: ff_checkpoint(folder, kind, n) for n in range(1, MAX_FF_LINKS + 1)}
+    found = {n: ff_checkpoint(folder, kind, n) for n in range(1, FF_MAX_LINKS + 1)}
     return {n: path for n, path in found.items() if path is not None}
 
 

@@ -35,6 +35,9 @@ from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput
 
 log = logging.getLogger(__name__)
 
+FF_MAX_LINKS = 8
+"""The most links a ``filters.ff`` net takes."""
+
 _TRAIN_HINT = (
     "train one with `vistac train`, or leave `checkpoint` empty for a freshly initialised net"
 )
@@ -269,8 +272,8 @@ class FFProcessModel(_LearnedProcessModel):
     plugin = "filters.ff"
 
     class Config(LearnedModelConfig):
-        n_links: int = Field(default=1, ge=1, le=8)
-        checkpoints: dict[Annotated[int, Field(ge=1, le=8)], SkillPath] | None = Field(
+        n_links: int = Field(default=1, ge=1, le=FF_MAX_LINKS)
+        checkpoints: dict[Annotated[int, Field(ge=1, le=FF_MAX_LINKS)], SkillPath] | None = Field(
             None, description="one checkpoint per link count, e.g. {1: checkpoints/ff1/"
             "ff_push.pt, 2: checkpoints/ff2/ff_push.pt}: the net of the fitted object's link "
             "count predicts, so the shape fit, not the skill, decides; replaces `checkpoint` "
