@@ -403,3 +403,24 @@ def test_a_feed_forward_without_validation_of_its_link_count_is_refused() -> Non
     config = TrainConfig(models=["gnn", "ff"], hidden=8, epochs=1)
     with pytest.raises(DataError, match=r"no push trajectories of \[2\] links"):
         train_interaction("push", data, config, Path("unused"))
+
+
+def test_an_ff_selects_with_the_net_of_the_fitted_link_count(tmp_path: Path) -> None:
+    """Information gain with the FF predicts with every link count's FF in the work folder,
+    picked by the fit (before, the FF of the object's true link count: a fit with another
+    count failed the collection run)."""
+    work = tmp_path / "work"
+    for n in (1, 2):
+        (work / f"ff{n}").mkdir(parents=True)
+        (work / f"ff{n}/ff_push.pt").write_bytes(b"")
+        (work / f"ff{n}/ff_push.pt.json").write_text(
+            json.dumps({"model": "filters.ff", "architecture": {"hidden": 16, "n_links": n}})
+        )
+    model, noise = active.Collector._model_overrides("ff", "push", work)
+    key, _, value = model.partition("=")
+    assert key == "components.model" and noise.endswith("obs_noise_push.pt")
+    assert json.loads(value) == {"plugin": "filters.ff", "with": {"hidden": 16, "checkpoints": {
+        str(n): str((work / f"ff{n}/ff_push.pt").resolve()) for n in (1, 2)
+    }}}  # fmt: skip
+    with pytest.raises(DataError, match=r"cannot select with ff: no FF checkpoint in"):
+        active.Collector._model_overrides("ff", "push", tmp_path)
