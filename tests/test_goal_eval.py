@@ -54,6 +54,8 @@ RECORDS = [
 def test_aggregate_pairs_the_modes_by_trial() -> None:
     row = aggregate([r for r in RECORDS if r["object"] == "rect1"])
     assert (row["runs"], row["failed"], row["paired_trials"]) == (6, 1, 2)
+    assert row["estimated_minus_default"]["mean_m"] == pytest.approx(0.005)  # (-10 + 20) / 2 mm
+    assert aggregate(RECORDS[5:6])["estimated_minus_default"] is None  # no paired trial
     assert row["estimated_lower"] == 1  # trial 2 has no default run to compare with
     estimated, default = row["estimated"], row["default"]
     assert estimated["runs"] == 3 and default["runs"] == 2
@@ -72,9 +74,14 @@ def test_aggregate_overall_and_the_table() -> None:
     rows = {"rect1": aggregate(RECORDS[:6]), "tri1": aggregate(RECORDS[6:]), "all": overall}
     table = tables_markdown(rows, RECORDS)
     assert "| rect1 | 2 (1 runs failed) | 20.0 / 15.0 | 20.0 / 15.0 |" in table
-    tri1 = "| tri1 | 1 | 5.0 / 40.0 | 5.0 / 40.0 | 17.2 / 5.7 | 2.0 / 2.0 | 1/1 / 1/1 | 1/1 |"
+    tri1 = ("| tri1 | 1 | 5.0 / 40.0 | 5.0 / 40.0 | 17.2 / 5.7 | 2.0 / 2.0 | 1/1 / 1/1 | 1/1 "
+            "| -35.0 [-35.0, -35.0] |")  # fmt: skip
     assert tri1 in table
-    assert "| all | 3 (1 runs failed) |" in table and "| 2/3 |" in table
+    # the trials' differences are -10, +20 and -35 mm: mean -8.3, every resample within
+    assert "| all | 3 (1 runs failed) |" in table and "| 2/3 | -8.3 [" in table
+    difference = overall["estimated_minus_default"]
+    assert difference["mean_m"] == pytest.approx(-0.025 / 3)
+    assert -0.035 <= difference["low_m"] < difference["mean_m"] < difference["high_m"] <= 0.020
     assert "8 runs, 3.5 min of skill wall time" in table
 
 
