@@ -172,19 +172,18 @@ def paired_difference(
     pairs: Sequence[dict[str, float]], seed: int = 0, level: float = 0.9
 ) -> dict[str, float] | None:
     """Estimated minus default final position error (m), the mean over the trials ``pairs``
-    ({mode: error}), with a ``level`` percentile interval from
-    :data:`~vistac.plugins.filters.evaluate.BOOTSTRAP_RESAMPLES` resamples of the trials
-    (an interval that holds 0 does not rank the two); None without trials."""
-    from vistac.plugins.filters.evaluate import BOOTSTRAP_RESAMPLES
+    ({mode: error}), with a ``level`` percentile interval from resampling the trials
+    (:func:`~vistac.plugins.filters.evaluate.resampled_interval`; an interval that holds 0
+    does not rank the two); None without trials."""
+    from vistac.plugins.filters.evaluate import resampled_interval
 
     if not pairs:
         return None
     differences = np.array([pair["estimated"] - pair["default"] for pair in pairs])
-    draws = np.random.default_rng(seed).integers(
-        0, len(differences), (BOOTSTRAP_RESAMPLES, len(differences))
+    low, high = resampled_interval(
+        lambda draws: differences[draws].mean(-1), len(differences), seed, level
     )
-    low, high = np.percentile(differences[draws].mean(-1), [50 * (1 - level), 50 * (1 + level)])
-    return {"mean_m": float(differences.mean()), "low_m": float(low), "high_m": float(high)}
+    return {"mean_m": float(differences.mean()), "low_m": low, "high_m": high}
 
 
 def aggregate(records: Sequence[dict[str, Any]]) -> dict[str, Any]:

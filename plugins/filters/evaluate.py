@@ -38,7 +38,7 @@ import json
 import logging
 import math
 import shutil
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
@@ -938,6 +938,17 @@ def _overall_nrmse(squares: np.ndarray) -> np.ndarray:
     return np.where(scored, rows, 0.0).sum(-1) / np.where(scored.any(-1), scored.sum(-1), np.nan)
 
 
+def resampled_interval(
+    statistic: Callable[[np.ndarray], np.ndarray], count: int, seed: int = 0, level: float = 0.9
+) -> tuple[float, float]:
+    """The ``level`` percentile interval of ``statistic`` over :data:`BOOTSTRAP_RESAMPLES`
+    resamples (with replacement, the same under the same ``seed``) of ``count`` items:
+    ``statistic`` maps the resampled indices [resamples, count] to one value per resample."""
+    draws = np.random.default_rng(seed).integers(0, count, (BOOTSTRAP_RESAMPLES, count))
+    low, high = np.nanpercentile(statistic(draws), [50 * (1 - level), 50 * (1 + level)])
+    return float(low), float(high)
+
+
 def overall_difference(
     base: Sequence[Pairs], other: Sequence[Pairs], ranges: dict[str, float],
     seed: int = 0, level: float = 0.9,
@@ -951,9 +962,10 @@ def overall_difference(
         _normalised_squares(runs, names, ranges) for runs in (other, base)
     )
     count = len(base)
-    draws = np.random.default_rng(seed).integers(0, count, (BOOTSTRAP_RESAMPLES, count))
-    resampled = _overall_nrmse(other_squares[draws]) - _overall_nrmse(base_squares[draws])
-    low, high = np.nanpercentile(resampled, [50 * (1 - level), 50 * (1 + level)])
+    low, high = resampled_interval(
+        lambda draws: _overall_nrmse(other_squares[draws]) - _overall_nrmse(base_squares[draws]),
+        count, seed, level,
+    )
     difference = _overall_nrmse(other_squares) - _overall_nrmse(base_squares)
     return {"difference": float(difference), "low": float(low), "high": float(high),
             "objects": float(count)}  # fmt: skip
