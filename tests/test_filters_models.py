@@ -380,7 +380,8 @@ def test_ff_with_a_checkpoint_per_link_count_predicts_with_the_states_count(
 
 def test_ff_checkpoints_are_checked_per_link_count(tmp_path: Path) -> None:
     build(FFProcessModel, tmp_path, hidden=16, n_links=1).save_checkpoint(tmp_path / "ff1.pt")
-    with pytest.raises(DataError, match=r"ff1\.pt does not match .*n_links: saved 1, configured 2"):
+    match = r"`checkpoints` 2: .*ff1\.pt does not match .*n_links: saved 1, configured 2"
+    with pytest.raises(DataError, match=match):
         build(FFProcessModel, tmp_path, hidden=16, checkpoints={2: "ff1.pt"})
     with pytest.raises(ConfigError, match=r"gone\.pt"):
         build(FFProcessModel, tmp_path, hidden=16, checkpoints={1: "gone.pt"})

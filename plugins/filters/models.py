@@ -302,7 +302,13 @@ class FFProcessModel(_LearnedProcessModel):
         super().__init__(config, ctx)
         if isinstance(self.net, FeedForwardByLinks):
             for n, path in sorted((counts or {}).items()):
-                load_checkpoint(self.net.net(n), Path(path), self.plugin, self._of(n))
+                try:
+                    load_checkpoint(self.net.net(n), Path(path), self.plugin, self._of(n))
+                except DataError as error:
+                    raise DataError(
+                        f"`checkpoints` {n}: {error} (each key is the link count its "
+                        "checkpoint was trained for)"
+                    ) from None
 
     def _build(self) -> nn.Module:
         if isinstance(self.n_links, tuple):
