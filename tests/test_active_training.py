@@ -7,6 +7,7 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -26,7 +27,7 @@ from vistac.plugins.filters.active import (
     trajectories_to_threshold_by_type,
     validation_error,
 )
-from vistac.plugins.filters.data import Trajectory, acted_link
+from vistac.plugins.filters.data import Trajectory, acted_link, load_trajectories
 from vistac.plugins.filters.evaluate import read_skill
 from vistac.plugins.filters.nets import RATE_SCALE_RADPS, SPEED_SCALE_MPS
 from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput, StateLayout
@@ -289,6 +290,25 @@ def test_bad_active_options_are_exit_2(
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    ("skill", "extra", "message"),
+    [("collect_pushes", ["info_gain"], "use a collection skill with a filter"),
+     ("explore_active", ["best"], "extra_val")],
+    ids=["info-gain-needs-filter", "unknown-selector"],
+)  # fmt: skip
+def test_bad_extra_validation_sets_are_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], skill: str, extra: list[str], message: str
+) -> None:
+    preset = tmp_path / "preset.yaml"
+    preset.write_text(yaml.safe_dump({"active": {"extra_val": extra}}))
+    out = tmp_path / "out"
+    code = main(["-q", "train", str(SKILLS / f"{skill}.yaml"), "--out", str(out),
+                 "--preset", str(preset), "--selection", "random"])  # fmt: skip
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
 FAST = [
     "components.views.with.max_views=1", "components.camera.with.width=160",
     "components.camera.with.height=120", "components.filter.with.sigma_points=16",
@@ -298,7 +318,9 @@ FAST = [
 
 def test_active_training_end_to_end(tmp_path: Path) -> None:
     """One object, two rounds (the random seed interaction, then one chosen by information
-    gain with the model of round 0); then a reachable threshold stops after the seed round."""
+    gain with the model of round 0), scored on random validation pushes and on pushes chosen
+    by information gain with the skill's own model; then a reachable threshold stops after
+    the seed round."""
     preset = tmp_path / "preset.yaml"
     preset.write_text(yaml.safe_dump({
         "shipped_train": ["rect1"], "shipped_val": ["rect3"], "models": ["gnn"],
@@ -306,7 +328,7 @@ def test_active_training_end_to_end(tmp_path: Path) -> None:
         "filter_windows": 2, "filter_sigma_points": 8, "batch_size": 8,
         "active": {"seed_interactions": 1, "val_interactions": 2, "per_round": 1,
                    "max_rounds": 2, "threshold": 0.0, "epochs_per_round": 3,
-                   "collect_overrides": FAST},
+                   "collect_overrides": FAST, "extra_val": ["info_gain"]},
     }))  # fmt: skip
     out = tmp_path / "out"
     assert _train(out, preset, "--selection", "info_gain") == 0
@@ -330,6 +352,7 @@ def test_active_training_end_to_end(tmp_path: Path) -> None:
     for name in ("gnn_push.pt", "gnn_push.pt.json", "obs_noise_push.pt", "active_training.png"):
         assert (out / name).stat().st_size > 0, name
     assert (out / "gnn_push.pt").read_bytes() == (work / "gnn_push.pt").read_bytes()
+    _check_extra_validation(out, preset, result)
 
     seed_run = out / "active/data/seed/rect1_0/summary.json"
     stamp = seed_run.stat().st_mtime_ns
@@ -337,6 +360,7 @@ def test_active_training_end_to_end(tmp_path: Path) -> None:
     result = json.loads((out / "train.json").read_text(encoding="utf-8"))["push"]["gnn"]
     assert result["stopped"] == "threshold" and result["trajectories_to_threshold"] == 1
     assert result["trajectories_to_threshold_by_type"] == {"homogeneous": 1}
+    assert result["trajectories_to_threshold_on"] == {"info_gain": 1}
     assert len(result["rounds"]) == 1
     assert seed_run.stat().st_mtime_ns == stamp  # the seed collection was reused
 
@@ -344,6 +368,27 @@ def test_active_training_end_to_end(tmp_path: Path) -> None:
     assert [r["selection"] for r in active.selection_reports(out)] == ["info_gain", "random"]
     assert (work / "gnn_push.pt").is_file()  # another selection keeps its own weights
     assert (out / "active/random/gnn_push/gnn_push.pt").is_file()
+
+
+def _check_extra_validation(out: Path, preset: Path, result: dict[str, Any]) -> None:
+    """The extra validation set: pushes chosen by information gain with the skill's shipped
+    model, scored with each round's weights as the random set is."""
+    report = json.loads((out / "train.json").read_text(encoding="utf-8"))
+    assert report["data"]["val_info_gain"]["trajectories"] == 2
+    run = json.loads((out / "active/data/val_info_gain/rect3_0/run.json").read_text())["config"]
+    assert run["components"]["planner"]["plugin"] == "actions.info_gain"
+    shipped = read_skill(SKILLS / "explore_active.yaml")["components"]["model"]["with"]
+    assert run["components"]["model"]["with"]["checkpoint"] == shipped["checkpoint"]
+    chosen = load_trajectories([out / "active/data/val_info_gain/rect3_0"])
+    work = out / "active/info_gain/gnn_push"
+    last = result["rounds"][-1]["extra_val"]["info_gain"]
+    assert last == active.model_error("gnn", "push", work, chosen, load_preset(str(preset)))
+    assert all(r["extra_val"]["info_gain"]["val_error"] > 0 for r in result["rounds"])
+    assert last["val_error"] != result["rounds"][-1]["val_error"]  # another set of pushes
+    assert result["trajectories_to_threshold_on"] == {"info_gain": None}
+    assert "on info_gain validation interactions: validation error" in "\n".join(
+        active.summary_lines(report)
+    )
 
 
 def test_changed_data_settings_drop_every_selections_results(tmp_path: Path) -> None:
@@ -361,15 +406,18 @@ def test_changed_data_settings_drop_every_selections_results(tmp_path: Path) -> 
 def test_fig10_curves_per_selection_and_object_type(tmp_path: Path) -> None:
     def report(selection: str, error: float) -> dict[str, object]:
         rounds = [{"trajectories": 6, "val_error": error,
-                   "by_type": {"homogeneous": {"trajectories": 2, "val_error": error / 2}}}]
+                   "by_type": {"homogeneous": {"trajectories": 2, "val_error": error / 2}},
+                   "extra_val": {"info_gain": {"val_error": error * 2}}}]
         return {"selection": selection, "active": {"threshold": 0.5},
                 "push": {"gnn": {"rounds": rounds}}}  # fmt: skip
 
     reports = [report("info_gain", 1.0), report("random", 3.0)]
     assert active._curves(reports) == {
         ("all", "info_gain gnn push"): [(6, 1.0)],
+        ("all, info_gain interactions", "info_gain gnn push"): [(6, 2.0)],
         ("homogeneous", "info_gain gnn push"): [(2, 0.5)],
         ("all", "random gnn push"): [(6, 3.0)],
+        ("all, info_gain interactions", "random gnn push"): [(6, 6.0)],
         ("homogeneous", "random gnn push"): [(2, 1.5)],
     }
     active.plot_rounds(reports, tmp_path / "fig10.png")

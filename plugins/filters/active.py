@@ -5,7 +5,11 @@ one fixed data set:
 
 0. Seed: the collection skill runs ``seed_interactions`` random interactions on every training
    object and ``val_interactions`` on every validation object (the validation set, fixed for
-   all rounds and shared by all selections, so their errors compare).
+   all rounds and shared by all selections, so their errors compare). Each selector of
+   ``extra_val`` adds a validation set of ``val_interactions`` interactions per validation
+   object chosen by it (info gain with the collection skill's own model: the interactions
+   the skill makes when deployed), scored every round next to the random one, which alone
+   decides the threshold.
 1. Each round trains every model of the preset on its replay buffer (all trajectories so far,
    the oldest dropped beyond ``buffer_size``, so the seed goes first) for ``epochs_per_round``
    epochs with early stopping, warm-started from the previous round, through the same losses
@@ -102,6 +106,13 @@ class ActiveConfig(BaseModel):
         default=4, gt=0, description="epochs on the buffer per round (at most)"
     )
     buffer_size: int | None = Field(default=None, gt=0, description="cap on buffered trajectories")
+    extra_val: tuple[Selection, ...] = Field(
+        default=(),
+        description="more validation sets, each scored every round next to the random one: "
+        "val_interactions interactions per validation object chosen by this selector "
+        "(info_gain with the collection skill's own model, i.e. the interactions the skill "
+        "makes when deployed); the random set alone decides the threshold",
+    )
     collect_overrides: tuple[str, ...] = ()
     """``--set`` overrides of the collection skill in every active-training run (the preset's
     own ``collect_overrides`` are for the plain collection skill and are not used)."""
@@ -286,11 +297,11 @@ class Collector:
         self.skill_data = read_skill(skill)
         self.repeat = repeat_key(self.skill_data, skill)
         components = self.skill_data.get("components") or {}
-        if active.selection == "info_gain" and "filter" not in components:
+        if "info_gain" in {active.selection, *active.extra_val} and "filter" not in components:
             raise ConfigError(
-                f"{skill}: --selection info_gain predicts with the model in the skill's dual "
-                "filter; use a collection skill with a filter component, e.g. "
-                "skills/explore_active.yaml"
+                f"{skill}: information gain (--selection info_gain or extra_val) predicts "
+                "with the model in the skill's dual filter; use a collection skill with a "
+                "filter component, e.g. skills/explore_active.yaml"
             )
 
     def run(
@@ -343,8 +354,11 @@ def train_rounds(
     collector: Collector,
     train_objects: list[Path],
     out_dir: Path,
+    extra_val: dict[Selection, list[Trajectory]] | None = None,
 ) -> dict[str, Any]:
-    """Active iterative training of one model on one interaction; its rounds and result."""
+    """Active iterative training of one model on one interaction; its rounds and result.
+    ``extra_val``: more validation sets by the selector that chose them (``extra_val`` of
+    each round and ``trajectories_to_threshold_on`` of the result)."""
     config, active = collector.config, collector.active
     work = _work_dir(out_dir, active.selection, name, kind)
     shutil.rmtree(work, ignore_errors=True)  # round 0 starts from fresh weights
@@ -360,6 +374,10 @@ def train_rounds(
             buffer.add(_collect_round(name, kind, index, collector, train_objects, work))
         collect_s = time.perf_counter() - start_s
         errors = train_round(name, kind, index, buffer.trajectories, val, collector, work)
+        errors["extra_val"] = {
+            selection: model_error(name, kind, work, trajectories, collector.config)
+            for selection, trajectories in (extra_val or {}).items()
+        }
         by_type = errors.pop("by_type")
         for object_type, type_errors in by_type.items():
             type_errors["trajectories"] = buffer.added_by_type[object_type]
@@ -377,6 +395,13 @@ def train_rounds(
         "trajectories_to_threshold_by_type": trajectories_to_threshold_by_type(
             rounds, active.threshold
         ),
+        "trajectories_to_threshold_on": {
+            selection: trajectories_to_threshold(
+                [r["extra_val"][selection] | {"trajectories": r["trajectories"]} for r in rounds],
+                active.threshold,
+            )
+            for selection in extra_val or {}
+        },
         "checkpoints": str(work),
     }  # fmt: skip
 
@@ -506,19 +531,28 @@ def train_active(
                               active.seed_interactions, config.seed)  # fmt: skip
     val = collector.run(files["val"], data / "val", "random", active.val_interactions,
                         config.seed + 1)  # fmt: skip
+    extra = {selection: collector.run(files["val"], data / f"val_{selection}", selection,
+                                      active.val_interactions, config.seed + 1)
+             for selection in active.extra_val}  # fmt: skip
     report: dict[str, Any] = {
         "mode": "active", "selection": active.selection,
         "active": active.model_dump(mode="json"), "preset": config.model_dump(mode="json"),
-        "data": {"seed": describe(seed_data), "val": describe(val)},
+        "data": {"seed": describe(seed_data), "val": describe(val)}
+        | {f"val_{selection}": describe(extra[selection]) for selection in extra},
     }  # fmt: skip
     for kind in kinds:
         val_kind = [t for t in val if t.kind == kind]
         if not val_kind or not any(t.kind == kind for t in seed_data):
             raise DataError(f"no {kind} trajectories in the seed or validation collection")
+        extra_kind = {sel: [t for t in extra[sel] if t.kind == kind] for sel in extra}
+        if not all(extra_kind.values()):
+            raise DataError(f"no {kind} trajectories in an extra_val collection: "
+                            f"{', '.join(sel for sel, ts in extra_kind.items() if not ts)}")
         report[kind] = {
-            name: train_rounds(name, kind, seed_data, val_kind, collector, files["train"], out_dir)
+            name: train_rounds(name, kind, seed_data, val_kind, collector, files["train"],
+                               out_dir, extra_kind)
             for name in config.models
-        }
+        }  # fmt: skip
     _publish(out_dir, active.selection, kinds, config.models)
     report["time_s"] = time.perf_counter() - start_s
     text = json.dumps(report, indent=2)
@@ -574,6 +608,18 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
                              f"{result['threshold']:g} after {len(result['rounds'])} rounds, "
                              f"{last['trajectories']} trajectories (not reached)")  # fmt: skip
             lines += _type_lines(result)
+            lines += _extra_lines(result)
+    return lines
+
+
+def _extra_lines(result: dict[str, Any]) -> list[str]:
+    """Per extra validation set: the trajectories it needed there, or its last error."""
+    lines = []
+    for selection, needed in result.get("trajectories_to_threshold_on", {}).items():
+        error = result["rounds"][-1]["extra_val"][selection]["val_error"]
+        reached = f"reached after {needed}" if needed is not None else "not reached"
+        lines.append(f"  on {selection} validation interactions: validation error {error:.4g} "
+                     f"(threshold {reached})")  # fmt: skip
     return lines
 
 
@@ -609,9 +655,10 @@ def plot_rounds(reports: Sequence[dict[str, Any]], path: Path) -> None:
         thresholds = {report["active"]["threshold"] for report in reports}
         for threshold in thresholds:
             axis.axhline(threshold, color="k", linestyle="--", linewidth=1)
-        axis.set_xlabel("trajectories collected" + ("" if panel == "all" else f" ({panel})"))
+        of_type = "" if panel.startswith("all") else f" ({panel})"
+        axis.set_xlabel("trajectories collected" + of_type)
         axis.set_ylabel("validation error")
-        axis.set_title(f"{panel} validation objects")
+        axis.set_title(f"validation objects: {panel}")
         axis.grid(alpha=0.3)
         axis.legend(fontsize="small")
     figure.tight_layout()
@@ -620,8 +667,9 @@ def plot_rounds(reports: Sequence[dict[str, Any]], path: Path) -> None:
 
 
 def _curves(reports: Sequence[dict[str, Any]]) -> dict[tuple[str, str], list[tuple[int, float]]]:
-    """(panel, label) -> [(trajectories, validation error)] per round; panel ``all`` or an
-    object type, whose x is that type's trajectories."""
+    """(panel, label) -> [(trajectories, validation error)] per round; panel ``all``, an
+    object type, whose x is that type's trajectories, or ``all, <selector> interactions`` (an
+    extra validation set)."""
     curves: dict[tuple[str, str], list[tuple[int, float]]] = {}
     for report in reports:
         for kind in ("push", "pull"):
@@ -631,6 +679,10 @@ def _curves(reports: Sequence[dict[str, Any]]) -> dict[tuple[str, str], list[tup
                     curves.setdefault(("all", label), []).append(
                         (r["trajectories"], r["val_error"])
                     )
+                    for selection, errors in r.get("extra_val", {}).items():
+                        curves.setdefault((f"all, {selection} interactions", label), []).append(
+                            (r["trajectories"], errors["val_error"])
+                        )
                     for object_type, errors in r.get("by_type", {}).items():
                         curves.setdefault((object_type, label), []).append(
                             (errors["trajectories"], errors["val_error"])
