@@ -63,13 +63,16 @@ def code_fingerprint() -> str:
 def named_files_digest(skill: Path, overrides: Sequence[str]) -> str:
     """SHA-256 of the skill file and of every file a value of the skill, with ``overrides``
     applied, names (checkpoints, objects, priors; a relative path from the skill's folder, as
-    the skill takes it): a run whose checkpoint was retrained in place is not reused. A skill
-    that cannot be read counts as its bytes alone (its run fails anyway)."""
+    the skill takes it), and of the ``NAME.json`` beside each (where a checkpoint keeps its
+    architecture): a run whose checkpoint was retrained in place is not reused. A skill that
+    cannot be read counts as its bytes alone (its run fails anyway)."""
     try:
         data = apply_overrides(read_yaml(skill) or {}, list(overrides))
     except ConfigError:
         data = {}
-    files = {skill.resolve()} | {path.resolve() for path in _named_files(data, skill.parent)}
+    named = {path.resolve() for path in _named_files(data, skill.parent)}
+    beside = {path.with_name(path.name + ".json") for path in named}
+    files = {skill.resolve()} | named | {path for path in beside if path.is_file()}
     digest = hashlib.sha256()
     for path in sorted(files):
         digest.update(str(path).encode())

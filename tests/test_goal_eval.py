@@ -199,18 +199,20 @@ def test_a_run_whose_named_files_changed_is_not_reused(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The stamp holds a digest of the skill and of the files its values and the --set
-    overrides name: a checkpoint retrained in place, or an edited skill or object, makes the
-    same arguments run again (before, the earlier run was reused)."""
+    overrides name (and a checkpoint's architecture file beside it): a checkpoint retrained in
+    place, or an edited skill or object, makes the same arguments run again (before, the
+    earlier run was reused)."""
     skill = tmp_path / "skill.yaml"
     skill.write_text("components:\n  model: {plugin: m, with: {checkpoint: net.pt}}\n")
     (tmp_path / "net.pt").write_bytes(b"weights 1")
+    (tmp_path / "net.pt.json").write_text('{"architecture": {"hidden": 32}}')
     (tmp_path / "object.yaml").write_text("mass: 1\n")
     run_dir = tmp_path / "run"
     args = ["-q", "run", str(skill), "--out", str(run_dir),
             "--set", f"components.world.with.object={tmp_path / 'object.yaml'}"]  # fmt: skip
     calls = fake_run(monkeypatch, 0)
-    for change, runs in [(None, 1), (None, 1), ("net.pt", 2), ("object.yaml", 3),
-                         ("skill.yaml", 4), (None, 4)]:  # fmt: skip
+    for change, runs in [(None, 1), (None, 1), ("net.pt", 2), ("net.pt.json", 3),
+                         ("object.yaml", 4), ("skill.yaml", 5), (None, 5)]:  # fmt: skip
         if change is not None:
             path = tmp_path / change
             path.write_bytes(path.read_bytes() + b"\n# changed\n")
