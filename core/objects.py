@@ -61,6 +61,9 @@ Footprint = Literal[
 
 MASS_RANGE_KG = (0.2, 1.6)
 FRICTION_RANGE = (0.1, 0.5)
+COM_SHRINK = 0.95
+"""A generated link's CoM is uniform inside its footprint shrunk by this factor towards the
+centroid (so that it stays clearly inside the outline)."""
 HEIGHT_RANGE_M = (0.04, 0.06)
 JOINT_FRICTION_RANGE_NM = (0.0, 0.5)
 
@@ -435,10 +438,9 @@ def save_object(spec: ObjectSpec, path: str | Path) -> None:
 def _random_link(rng: np.random.Generator) -> LinkSpec:
     footprint = FOOTPRINTS[int(rng.integers(len(FOOTPRINTS)))]
     polygon = footprint_polygon(footprint)
-    # Shrink towards the centroid so the CoM stays clearly inside the outline.
     while True:
         com = rng.uniform(polygon.min(axis=0), polygon.max(axis=0))
-        if points_inside(0.95 * polygon, com[None])[0]:
+        if points_inside(COM_SHRINK * polygon, com[None])[0]:
             break
     return LinkSpec(
         footprint=footprint,  # type: ignore[arg-type]

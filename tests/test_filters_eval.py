@@ -303,7 +303,7 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
         "model": "gnn", "selector": "uniform", "estimate_parameters": True
     }  # fmt: skip
     cell = tables["tables"]["homogeneous"]["push"]
-    assert list(cell) == ["A-GNN", "U-GNN", "A-Analytical", "Prior", "m·f known"]
+    assert list(cell) == ["A-GNN", "U-GNN", "A-Analytical", "Prior", "m·f known", "load known"]
     assert tables["differences"] == report["differences"] == {}  # one object: nothing to resample
     assert tables["whole_object"] == {}  # one link: nothing to add up
     first = json.loads((out / "runs/rect2/a-gnn/summary.json").read_text())
@@ -315,6 +315,7 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
     m_0 = truth["parameters"]["m_0"]  # the references are scored on the same object
     assert cell["Prior"]["m_0"] == pytest.approx(abs(0.9 - m_0) / 1.4)
     assert cell["m·f known"]["CoM_0"] == 0.0
+    assert cell["load known"] == cell["m·f known"]  # a single link: its load centre is its CoM
     ranges = tables["ranges"]
     assert ranges["CoM"] == pytest.approx(parameter_ranges()["CoM"])
     for key, label in (("a-gnn", "A-GNN"), ("a-analytical", "A-Analytical")):
@@ -715,7 +716,7 @@ def test_reference_columns_score_the_prior_and_a_known_product() -> None:
     records[0]["parameters"] |= {"CoM_0": ((0.02, 0.0), (0.01, 0.03))}
     prior = Prior(mass_kg=(0.5, 0.4), friction=(0.2, 0.1), com_m=(0.0, 0.02))
     references = reference_records(records, prior)
-    assert [r["variant"] for r in references] == ["Prior", "m·f known"]  # one per object
+    assert [r["variant"] for r in references] == ["Prior", "m·f known", "load known"]
     truth_m, truth_f = records[0]["parameters"]["m_0"][1], records[0]["parameters"]["f_0"][1]
     assert references[0]["parameters"] == {
         "m_0": (0.5, truth_m), "f_0": (0.2, truth_f), "CoM_0": ((0.0, 0.0), (0.01, 0.03))

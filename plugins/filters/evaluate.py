@@ -62,6 +62,7 @@ from vistac.objects import (
     write_configurations,
 )
 from vistac.plugins.filters.component import Prior
+from vistac.plugins.filters.identifiable import welded_pair_posterior
 from vistac.plugins.filters.models import FF_MAX_LINKS, LearnedModelConfig
 from vistac.recording import refuse_file_as_folder
 from vistac.skill import apply_overrides
@@ -268,7 +269,37 @@ def product_known_pairs(truth: Pairs) -> Pairs:
     return pairs
 
 
-REFERENCES: tuple[str, ...] = ("Prior", "m·f known")
+def load_known_pairs(record: dict[str, Any]) -> Pairs | None:
+    """``record``'s pairs (a scored run) estimated from what quasi-static pushes show of each
+    rigid body, its friction load and load centre, exactly: of a single link or a hinged pair
+    :func:`product_known_pairs`; of a welded pair (heterogeneous) the posterior means of
+    :func:`~vistac.plugins.filters.identifiable.welded_pair_posterior`, each CoM's error (a
+    distance when scored) put on the truth in the link frame's axes. None when the record
+    names no object file to read the pair from."""
+    truth = record["parameters"]
+    if record["type"] != "heterogeneous":
+        return product_known_pairs(truth)
+    path = record.get("object_file")
+    if not path or not Path(path).is_file():
+        return None
+    spec = load_object(path)
+    estimates = welded_pair_posterior(spec)
+    pairs = product_known_pairs(truth)
+    for belief_link, true_link in (record.get("links") or {}).items():
+        mass, friction, com = estimates[int(true_link)]
+        true_com = np.asarray(spec.links[int(true_link)].com_m)
+        for row, estimate in (("m", mass), ("f", friction)):
+            name = f"{row}_{belief_link}"
+            if name in truth:
+                pairs[name] = (estimate, truth[name][1])
+        name = f"CoM_{belief_link}"
+        if name in truth:
+            scored = np.asarray(truth[name][1], dtype=np.float64) + (com - true_com)
+            pairs[name] = ((float(scored[0]), float(scored[1])), truth[name][1])
+    return pairs
+
+
+REFERENCES: tuple[str, ...] = ("Prior", "m·f known", "load known")
 """Reference columns of the NRMSE tables, scored on the objects the variants ran on."""
 
 
@@ -287,9 +318,11 @@ def reference_records(records: Sequence[dict[str, Any]], prior: Prior) -> list[d
         base = {key: record[key] for key in ("object", "type", "kind")}
         prior_means = record.get("prior") or prior_pairs(record["parameters"], prior)
         whole = record.get("whole_object")
-        for label, pairs in zip(REFERENCES, (prior_means,
-                                             product_known_pairs(record["parameters"])),
-                                strict=True):  # fmt: skip
+        estimates = (prior_means, product_known_pairs(record["parameters"]),
+                     load_known_pairs(record))  # fmt: skip
+        for label, pairs in zip(REFERENCES, estimates, strict=True):
+            if pairs is None:
+                continue
             reference = base | {"variant": label, "status": "ok", "parameters": pairs}
             if label == "Prior" and whole and whole["prior"]:
                 reference["whole_object"] = whole | {"estimate": whole["prior"]}
@@ -1139,7 +1172,10 @@ def tables_markdown(
         "References on the same objects: *Prior*, the prior's means; *m·f known*, each link's "
         "CoM and the joint friction exact and m and f the best guess from their product, "
         "which is what the force of a quasi-static push shows (about 0.19 for m and 0.22 "
-        "for f over the object set's ranges).",
+        "for f over the object set's ranges); *load known*, what quasi-static pushes show of "
+        "each rigid body, its friction load and where it is centred, exact and the rest the "
+        "best guess from them: as *m·f known* for single links and hinged pairs, but of a "
+        "welded pair (heterogeneous) only the pair's total load and its centre.",
         "",
     ]
     for kind_type, by_kind in tables.items():
