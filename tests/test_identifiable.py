@@ -79,37 +79,38 @@ def test_a_load_near_its_largest_pins_mass_and_friction_near_theirs() -> None:
                             np.random.default_rng(0))  # fmt: skip
 
 
-def _pair_record(links: dict[str, int]) -> dict[str, object]:
+def _pair_record() -> dict[str, object]:
+    """A scored run of the welded pair: rows named by the true link."""
     spec = load_object(PAIR)
     truth: dict[str, object] = {}
-    for belief, true in links.items():
-        link = spec.links[true]
-        truth |= {f"m_{belief}": (0.9, link.mass_kg), f"f_{belief}": (0.3, link.friction),
-                  f"CoM_{belief}": ((0.0, 0.0), (0.02, -0.01))}  # fmt: skip
+    for index, link in enumerate(spec.links):
+        truth |= {f"m_{index}": (0.9, link.mass_kg), f"f_{index}": (0.3, link.friction),
+                  f"CoM_{index}": ((0.0, 0.0), (0.02, -0.01))}  # fmt: skip
     return {"object": spec.name, "object_file": str(PAIR), "type": "heterogeneous",
             "kind": "push", "variant": "A-GNN", "status": "ok", "estimate_parameters": True,
-            "links": links, "parameters": truth}  # fmt: skip
+            "links": {"0": 1, "1": 0}, "parameters": truth}  # fmt: skip
 
 
-def test_load_known_scores_each_belief_link_by_its_matched_true_link() -> None:
+def test_load_known_scores_each_true_link_by_its_posterior() -> None:
+    """Rows are named by the true link whatever the belief's numbering (``links``)."""
     spec = load_object(PAIR)
     posterior = welded_pair_posterior(spec)
-    pairs = load_known_pairs(_pair_record({"0": 1, "1": 0}))
+    pairs = load_known_pairs(_pair_record())
     assert pairs is not None
-    assert pairs["m_0"] == (posterior[1][0], spec.links[1].mass_kg)
-    assert pairs["f_1"] == (posterior[0][1], spec.links[0].friction)
-    estimate, truth = pairs["CoM_0"]
+    assert pairs["m_0"] == (posterior[0][0], spec.links[0].mass_kg)
+    assert pairs["f_1"] == (posterior[1][1], spec.links[1].friction)
+    estimate, truth = pairs["CoM_1"]
     error = np.asarray(posterior[1][2]) - np.asarray(spec.links[1].com_m)
     assert math.dist(estimate, truth) == pytest.approx(float(np.linalg.norm(error)))
-    single = _pair_record({"0": 0}) | {"type": "homogeneous"}
+    single = _pair_record() | {"type": "homogeneous"}
     assert load_known_pairs(single) == product_known_pairs(single["parameters"])  # type: ignore[arg-type]
-    assert load_known_pairs(_pair_record({"0": 0}) | {"object_file": "/no/such.yaml"}) is None
+    assert load_known_pairs(_pair_record() | {"object_file": "/no/such.yaml"}) is None
 
 
 def test_the_load_known_column_leaves_a_welded_pairs_coms_open() -> None:
     """Among the references of a heterogeneous run, next to *m·f known* (each CoM exact);
     left out when the run names no object file."""
-    record = _pair_record({"0": 0, "1": 1})
+    record = _pair_record()
     references = reference_records([record], Prior())
     assert [r["variant"] for r in references] == ["Prior", "m·f known", "load known"]
     ranges = {"m": 1.4, "f": 0.4, "CoM": 0.088, "f_j": 0.5}

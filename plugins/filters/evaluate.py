@@ -270,9 +270,10 @@ def product_known_pairs(truth: Pairs) -> Pairs:
 
 
 def load_known_pairs(record: dict[str, Any]) -> Pairs | None:
-    """``record``'s pairs (a scored run) estimated from what quasi-static pushes show of each
-    rigid body, its friction load and load centre, exactly: of a single link or a hinged pair
-    :func:`product_known_pairs`; of a welded pair (heterogeneous) the posterior means of
+    """``record``'s pairs (a scored run, rows named by the true link) estimated from what
+    quasi-static pushes show of each rigid body, its friction load and load centre, exactly:
+    of a single link or a hinged pair :func:`product_known_pairs`; of a welded pair
+    (heterogeneous) the posterior means of
     :func:`~vistac.plugins.filters.identifiable.welded_pair_posterior`, each CoM's error (a
     distance when scored) put on the truth in the link frame's axes. None when the record
     names no object file to read the pair from."""
@@ -283,19 +284,16 @@ def load_known_pairs(record: dict[str, Any]) -> Pairs | None:
     if not path or not Path(path).is_file():
         return None
     spec = load_object(path)
-    estimates = welded_pair_posterior(spec)
     pairs = product_known_pairs(truth)
-    for belief_link, true_link in (record.get("links") or {}).items():
-        mass, friction, com = estimates[int(true_link)]
-        true_com = np.asarray(spec.links[int(true_link)].com_m)
-        for row, estimate in (("m", mass), ("f", friction)):
-            name = f"{row}_{belief_link}"
-            if name in truth:
-                pairs[name] = (estimate, truth[name][1])
-        name = f"CoM_{belief_link}"
-        if name in truth:
-            scored = np.asarray(truth[name][1], dtype=np.float64) + (com - true_com)
-            pairs[name] = ((float(scored[0]), float(scored[1])), truth[name][1])
+    for link, (mass, friction, com) in enumerate(welded_pair_posterior(spec)):
+        for row, estimate in ((f"m_{link}", mass), (f"f_{link}", friction)):
+            if row in truth:
+                pairs[row] = (estimate, truth[row][1])
+        if f"CoM_{link}" in truth:
+            true_com = truth[f"CoM_{link}"][1]
+            error = com - np.asarray(spec.links[link].com_m)
+            moved = (float(true_com[0] + error[0]), float(true_com[1] + error[1]))
+            pairs[f"CoM_{link}"] = (moved, true_com)
     return pairs
 
 
