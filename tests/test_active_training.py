@@ -293,8 +293,10 @@ def test_bad_active_options_are_exit_2(
 @pytest.mark.parametrize(
     ("skill", "extra", "message"),
     [("collect_pushes", ["info_gain"], "use a collection skill with a filter"),
-     ("explore_active", ["best"], "extra_val")],
-    ids=["info-gain-needs-filter", "unknown-selector"],
+     ("explore_active", ["best"], "extra_val"),
+     ("explore_active", ["random"], "the random validation set is always scored"),
+     ("explore_active", ["uniform", "uniform"], "each selector is one set")],
+    ids=["info-gain-needs-filter", "unknown-selector", "random", "twice"],
 )  # fmt: skip
 def test_bad_extra_validation_sets_are_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], skill: str, extra: list[str], message: str

@@ -55,7 +55,7 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from vistac.errors import ConfigError, DataError
 from vistac.plugins.filters.data import Trajectory, describe, load_trajectories, stack_equal_length
 from vistac.plugins.filters.evaluate import (
@@ -113,6 +113,16 @@ class ActiveConfig(BaseModel):
         "(info_gain with the collection skill's own model, i.e. the interactions the skill "
         "makes when deployed); the random set alone decides the threshold",
     )
+
+    @field_validator("extra_val")
+    @classmethod
+    def _not_the_random_set(cls, selections: tuple[Selection, ...]) -> tuple[Selection, ...]:
+        if "random" in selections or len(set(selections)) < len(selections):
+            raise ValueError(
+                "extra_val: the random validation set is always scored (it decides the "
+                "threshold) and each selector is one set; give info_gain and/or uniform once"
+            )
+        return selections
     collect_overrides: tuple[str, ...] = ()
     """``--set`` overrides of the collection skill in every active-training run (the preset's
     own ``collect_overrides`` are for the plain collection skill and are not used)."""
