@@ -166,6 +166,19 @@ def points_inside(polygon: FloatArray, points: FloatArray) -> NDArray[np.bool_]:
     return np.asarray(np.all(cross > 0.0, axis=1))
 
 
+def uniform_inside(polygon: FloatArray, count: int, rng: np.random.Generator) -> FloatArray:
+    """``count`` points [count, 2] uniform inside the convex CCW ``polygon`` [K, 2]."""
+    low, high = polygon.min(axis=0), polygon.max(axis=0)
+    kept: list[FloatArray] = []
+    found = 0
+    while found < count:
+        points = rng.uniform(low, high, (2 * count, 2))
+        points = points[points_inside(polygon, points)]
+        kept.append(points)
+        found += len(points)
+    return np.concatenate(kept)[:count]
+
+
 def prism_surface_points(
     polygon: FloatArray, height_m: float, count: int, rng: np.random.Generator
 ) -> FloatArray:

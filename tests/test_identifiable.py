@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from vistac.objects import COM_SHRINK, attachment, load_object
+from vistac.objects import COM_SHRINK, attachment, load_object, uniform_inside
 from vistac.plugins.filters.component import Prior
 from vistac.plugins.filters.evaluate import (
     load_known_pairs,
@@ -18,7 +18,6 @@ from vistac.plugins.filters.evaluate import (
 )
 from vistac.plugins.filters.identifiable import (
     pair_load,
-    uniform_inside,
     welded_pair_posterior,
     welded_pair_samples,
 )

@@ -31,6 +31,7 @@ from vistac.objects import (
     ObjectSpec,
     attachment,
     points_inside,
+    uniform_inside,
 )
 
 FloatArray = NDArray[np.float64]
@@ -52,19 +53,6 @@ class WeldedSamples:
     friction: FloatArray
     com_m: FloatArray
     weight: FloatArray
-
-
-def uniform_inside(polygon: FloatArray, count: int, rng: np.random.Generator) -> FloatArray:
-    """``count`` points [count, 2] uniform inside the convex CCW ``polygon`` [K, 2]."""
-    low, high = polygon.min(axis=0), polygon.max(axis=0)
-    kept: list[FloatArray] = []
-    found = 0
-    while found < count:
-        points = rng.uniform(low, high, (2 * count, 2))
-        points = points[points_inside(polygon, points)]
-        kept.append(points)
-        found += len(points)
-    return np.concatenate(kept)[:count]
 
 
 def pair_load(spec: ObjectSpec) -> tuple[float, FloatArray]:
