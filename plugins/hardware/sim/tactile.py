@@ -10,6 +10,25 @@ from vistac.plugins.hardware.sim.arm import find_world
 from vistac.types import FloatArray, TactileReading
 
 
+def pad_forces(model: mujoco.MjModel, data: mujoco.MjData, pads: np.ndarray) -> FloatArray:
+    """The force the other geoms of their contacts exert on each pad geom in ``pads`` [P]:
+    [P, 3] (world frame, N)."""
+    forces = np.zeros((len(pads), 3))
+    wrench = np.zeros(6)
+    geoms = data.contact.geom[: data.ncon]
+    frames = data.contact.frame[: data.ncon]
+    for i in np.flatnonzero(np.isin(geoms, pads).any(axis=1)):
+        mujoco.mj_contactForce(model, data, int(i), wrench)
+        # The contact force acts on geom2 along the frame (normal from geom1 to geom2).
+        on_geom2 = frames[i].reshape(3, 3).T @ wrench[:3]
+        geom1, geom2 = geoms[i]
+        if geom2 in pads:
+            forces[int(np.flatnonzero(pads == geom2)[0])] += on_geom2
+        if geom1 in pads:
+            forces[int(np.flatnonzero(pads == geom1)[0])] -= on_geom2
+    return forces
+
+
 class SimTactile(Component):
     """Implements the ``Tactile`` protocol.
 
@@ -28,25 +47,10 @@ class SimTactile(Component):
         self.world = find_world(ctx, "sim.tactile")
         self._rng = ctx.rng("tactile")
         self._bias_n = np.zeros((2, 2))
-        self._wrench = np.zeros(6)
 
     def pad_forces(self) -> FloatArray:
         """Noise-free, unbiased force on each pad: [2, 3] (world frame, N)."""
-        model, data = self.world.model, self.world.data
-        pads = self.world.index.pad_geoms
-        forces = np.zeros((len(pads), 3))
-        geoms = data.contact.geom[: data.ncon]
-        frames = data.contact.frame[: data.ncon]
-        for i in np.flatnonzero(np.isin(geoms, pads).any(axis=1)):
-            mujoco.mj_contactForce(model, data, int(i), self._wrench)
-            # The contact force acts on geom2 along the frame (normal from geom1 to geom2).
-            on_geom2 = frames[i].reshape(3, 3).T @ self._wrench[:3]
-            geom1, geom2 = geoms[i]
-            if geom2 in pads:
-                forces[int(np.flatnonzero(pads == geom2)[0])] += on_geom2
-            if geom1 in pads:
-                forces[int(np.flatnonzero(pads == geom1)[0])] -= on_geom2
-        return forces
+        return pad_forces(self.world.model, self.world.data, self.world.index.pad_geoms)
 
     def read(self) -> TactileReading:
         force_n = self.pad_forces()[:, :2] - self._bias_n
