@@ -108,6 +108,18 @@ def central_twist(poses: FloatArray, dt_s: float) -> FloatArray:
     return np.gradient(poses, dt_s, axis=0)
 
 
+def too_fast_a_turn(poses: FloatArray, dt_s: float, source: object = None) -> bool:
+    """Whether a link of the continuous poses [T, L, 3] turned faster than
+    :data:`MAX_TURN_RATE_RADPS` between two steps (the object tipped over or was flung);
+    logged with ``source`` when one is given."""
+    turn_rate_radps = np.abs(np.diff(poses[..., 2], axis=0)).max(initial=0.0) / dt_s
+    if turn_rate_radps > MAX_TURN_RATE_RADPS and source is not None:
+        log.warning("left out %s: a link turned at %.0f rad/s between two steps (over %g: the "
+                    "object tipped over or was flung)", source, turn_rate_radps,
+                    MAX_TURN_RATE_RADPS)  # fmt: skip
+    return bool(turn_rate_radps > MAX_TURN_RATE_RADPS)
+
+
 def _episode(folder: Path) -> Trajectory | None:
     meta = json.loads((folder / "meta.json").read_text(encoding="utf-8"))
     truth = meta.get("ground_truth")
@@ -120,11 +132,7 @@ def _episode(folder: Path) -> Trajectory | None:
     time_s = arrays["time_s"]
     dt_s = float(np.median(np.diff(time_s)))
     poses = unwrap_theta(arrays["object_pose"])
-    turn_rate_radps = np.abs(np.diff(poses[..., 2], axis=0)).max(initial=0.0) / dt_s
-    if turn_rate_radps > MAX_TURN_RATE_RADPS:
-        log.warning("left out %s: a link turned at %.0f rad/s between two steps (over %g: the "
-                    "object tipped over or was flung)", folder, turn_rate_radps,
-                    MAX_TURN_RATE_RADPS)  # fmt: skip
+    if too_fast_a_turn(poses, dt_s, folder):
         return None
     arm_pose, arm_twist = arrays["arm_pose"], arrays["arm_twist"]
     intrinsics = None
