@@ -480,6 +480,26 @@ def _random_object(kind: ObjectType, index: int, rng: np.random.Generator) -> Ob
     )
 
 
+def redraw_parameters(spec: ObjectSpec, rng: np.random.Generator) -> ObjectSpec:
+    """The same object (footprints, heights, pose, joint) with its parameters drawn anew as
+    the object set draws them: m, f and the joint friction uniform over their ranges, each
+    CoM uniform inside its footprint shrunk by :data:`COM_SHRINK`."""
+    links = [
+        link.model_copy(update={
+            "mass_kg": float(rng.uniform(*MASS_RANGE_KG)),
+            "friction": float(rng.uniform(*FRICTION_RANGE)),
+            "com_m": tuple(float(v) for v in uniform_inside(COM_SHRINK * link.polygon(), 1,
+                                                            rng)[0]),
+        })
+        for link in spec.links
+    ]  # fmt: skip
+    joint = None
+    if spec.joint is not None:
+        friction_nm = float(rng.uniform(*JOINT_FRICTION_RANGE_NM))
+        joint = spec.joint.model_copy(update={"friction_nm": friction_nm})
+    return spec.model_copy(update={"links": links, "joint": joint})
+
+
 def generate_configurations(seed: int, per_type: int = 40) -> list[ObjectSpec]:
     """The paper's object set: ``per_type`` homogeneous, heterogeneous and articulated objects.
 

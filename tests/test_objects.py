@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from vistac.errors import ConfigError
 from vistac.objects import (
+    COM_SHRINK,
     FOOTPRINTS,
     HINGE_GAP_M,
     ObjectSpec,
@@ -23,6 +24,7 @@ from vistac.objects import (
     points_inside,
     polygon_area,
     polygon_centroid_covariance,
+    redraw_parameters,
     split_configurations,
     write_configurations,
 )
@@ -184,6 +186,29 @@ def test_generator_counts_ranges_and_reproducibility() -> None:
     assert generate_configurations(seed=3) == specs
     assert generate_configurations(seed=4) != specs
 
+
+
+def test_redrawn_parameters_keep_the_object_and_spread_as_the_set_does() -> None:
+    spec = generate_configurations(seed=3)[100]  # articulated
+    rng = np.random.default_rng(0)
+    draws = [redraw_parameters(spec, rng) for _ in range(400)]
+    for draw in draws[:20]:
+        ObjectSpec.model_validate(draw.model_dump())  # every value valid: CoM inside, ranges
+        assert (draw.name, draw.pose, draw.type) == (spec.name, spec.pose, spec.type)
+        assert [(a.footprint, a.height_m) for a in draw.links] == [
+            (a.footprint, a.height_m) for a in spec.links]
+        assert points_inside(COM_SHRINK * draw.links[1].polygon(),
+                             np.array([draw.links[1].com_m]))[0]  # fmt: skip
+    masses = np.array([d.links[0].mass_kg for d in draws])
+    joints = np.array([d.joint.friction_nm for d in draws if d.joint is not None])
+    assert masses.mean() == pytest.approx(0.9, abs=0.05) and masses.std() == pytest.approx(
+        1.4 / np.sqrt(12), rel=0.1)
+    assert len(joints) == 400 and joints.mean() == pytest.approx(0.25, abs=0.02)
+    coms = np.array([d.links[0].com_m for d in draws])
+    centre, _ = polygon_centroid_covariance(COM_SHRINK * spec.links[0].polygon())
+    np.testing.assert_allclose(coms.mean(axis=0), centre, atol=0.004)
+    assert redraw_parameters(spec, np.random.default_rng(7)) == redraw_parameters(
+        spec, np.random.default_rng(7)) != redraw_parameters(spec, np.random.default_rng(8))
 
 def test_split_is_stratified_disjoint_and_reproducible() -> None:
     specs = generate_configurations(seed=1)
