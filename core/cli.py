@@ -307,6 +307,46 @@ def cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_information(args: argparse.Namespace) -> int:
+    import dataclasses
+    import math
+
+    from vistac.plugins.filters.information import (
+        WINDOW_STEPS,
+        ModelError,
+        agreement_markdown,
+        collect_information,
+        information_markdown,
+        information_tables,
+        model_agreement,
+        run_folders,
+        skill_model,
+    )
+    from vistac.recording import write_json
+
+    error = ModelError()
+    error = ModelError(
+        args.position_error_m or error.position_m,
+        math.radians(args.angle_error_deg) if args.angle_error_deg else error.angle_rad,
+        args.force_error_n or error.force_n,
+    )
+    model = None if args.skill is None else skill_model(args.skill, args.set, _plugins(args))
+    runs = run_folders(args.folder, args.variant)
+    by_type = collect_information(runs)
+    tables = information_tables(by_type, error, args.scale)
+    lines = information_markdown(tables, error)
+    report: dict[str, Any] = {"runs": [str(run) for run in runs],
+                              "model_error": dataclasses.asdict(error),
+                              "window_steps": WINDOW_STEPS, "tables": tables}  # fmt: skip
+    if model is not None:
+        report["agreement"] = model_agreement(by_type, model, error)
+        lines += agreement_markdown(report["agreement"])
+    print("\n".join(lines))
+    if args.out is not None:
+        write_json(args.out, report)
+    return 0
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from vistac.plugins.actions.campaign import is_goal_skill
     from vistac.plugins.filters.evaluate import (
@@ -427,6 +467,17 @@ def _seed(text: str) -> int:
     if seed < 0:
         raise argparse.ArgumentTypeError(f"{seed} is negative; give 0 or more")
     return seed
+
+
+def _positive(text: str) -> float:
+    """A number above 0 (argparse names the option when not)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid number: {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number above 0")
+    return value
 
 
 def _add_skill_options(parser: argparse.ArgumentParser) -> None:
@@ -579,6 +630,35 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("base", type=Path, help="the --out folder of one `vistac eval`")
     compare.add_argument("other", type=Path, help="the --out folder of another")
     compare.set_defaults(func=cmd_compare)
+
+    about = ("replay a simulated run's pushes (or those of one `vistac eval` column) with each "
+             "parameter moved, and print what they show: the expected NRMSE of a process "
+             "model that moved with the parameters as the simulator does and erred by the "
+             "given model error per 25-step window")  # fmt: skip
+    information = sub.add_parser("information", help=about, description=about)
+    information.add_argument("folder", type=Path, help="a run folder or a `vistac eval` --out")
+    information.add_argument(
+        "--variant", default="a-gnn", help="the evaluation column whose runs to replay"
+    )
+    information.add_argument(
+        "--scale", type=_positive, nargs="+", default=[1.0, 0.5, 0.25],
+        help="multiples of the model error to tabulate (default 1 0.5 0.25)",
+    )  # fmt: skip
+    for option, what in (("--position-error-m", "each link's position (default 0.007)"),
+                         ("--angle-error-deg", "each link's angle (default 2.5)"),
+                         ("--force-error-n", "the mean finger force per axis (default 0.8)")):
+        information.add_argument(option, type=_positive, help=f"model error of {what}")
+    information.add_argument(
+        "--skill", type=Path,
+        help="also compare this skill's process model (components.model) with the simulator: "
+        "how its predictions move with each parameter",
+    )  # fmt: skip
+    information.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE",
+        help="override a key of --skill, e.g. components.model.with.checkpoint=other.pt",
+    )  # fmt: skip
+    information.add_argument("--out", type=Path, help="also write the tables to this JSON file")
+    information.set_defaults(func=cmd_information)
 
     objects = sub.add_parser("objects", help="object configurations")
     objects_sub = objects.add_subparsers(dest="objects_command", required=True)

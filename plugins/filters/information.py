@@ -1,0 +1,571 @@
+"""What the simulator shows of an object's parameters through the pushes a run made.
+
+Each recorded push of a simulated run is replayed in the MuJoCo world from its recorded start
+(the links at their recorded poses, at rest; the gripper along its recorded path) and cut into
+windows of :data:`WINDOW_STEPS` control steps, as the process models are trained and scored.
+Per window the outcome is each link's change of pose (x, y, theta) and the mean finger force
+(x, y); central differences, each window started from the replay's own state, give its
+Jacobian with respect to every parameter (m, f, CoM per link; the joint friction of a hinge).
+
+A process model that moved with the parameters exactly as the simulator does, and erred by
+``noise`` on each window independently, would learn from these pushes at best the Bayes
+posterior of the linearised problem: ``P = (P0^-1 + J^T R^-1 J)^-1`` with ``P0`` the
+covariance of the object set's sampling distributions (:mod:`vistac.objects`) and ``R`` the
+model error. Its diagonal, over the runs and normalised by the parameter ranges as ``vistac
+eval`` normalises, is the expected NRMSE of that model: what the pushes show at that model
+error. It is a local figure, at the true parameters: a hinge whose friction holds it still
+through a push shows only that its friction is above what the push asked of it, and counts
+as showing nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import tempfile
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+import torch
+from vistac.errors import ConfigError, DataError
+from vistac.objects import (
+    COM_SHRINK,
+    FRICTION_RANGE,
+    JOINT_FRICTION_RANGE_NM,
+    MASS_RANGE_KG,
+    ObjectSpec,
+    polygon_centroid_covariance,
+    redraw_parameters,
+)
+from vistac.pluginmanager import Plugins
+from vistac.plugins.filters.data import (
+    Trajectory,
+    central_twist,
+    load_trajectories,
+    process_inputs,
+    too_fast_a_turn,
+    true_states,
+    unwrap_theta,
+)
+from vistac.plugins.filters.evaluate import family_of, parameter_ranges
+from vistac.plugins.filters.state import DTYPE, StateLayout
+from vistac.plugins.hardware.sim.mjcf import GripperGeometry, build_mjcf
+from vistac.plugins.hardware.sim.tactile import pad_forces
+from vistac.plugins.hardware.sim.world import SimIndex
+from vistac.skill import load_skill
+from vistac.testing import build_components
+from vistac.types import FloatArray
+
+log = logging.getLogger(__name__)
+
+WINDOW_STEPS = 25
+"""Control steps per window: the training's rollout length (``rollout_steps``)."""
+MIN_WINDOW_STEPS = 10
+"""A push's last, shorter window is kept when it has at least this many steps."""
+TIMESTEP_S = 0.002
+"""The simulator's step (``sim.world``'s default)."""
+GRIPPER = GripperGeometry(0.15)
+"""``sim.world``'s default gripper; a push's fingers are closed, so the opening does not
+matter."""
+FINITE_STEP = {"m": 0.05, "f": 0.02, "com_x": 0.003, "com_y": 0.003, "f_j": 0.03}
+"""Half the central-difference step per parameter family (kg, -, m, m, N m)."""
+
+
+@dataclass(frozen=True)
+class ModelError:
+    """A process model's error per window: each link's position (m) and angle (rad), and
+    the mean finger force (N) along each axis."""
+
+    position_m: float = 0.007
+    angle_rad: float = math.radians(2.5)
+    force_n: float = 0.8
+
+    def per_window(self, n_links: int) -> FloatArray:
+        """Standard deviations [3 L + 2] in the order of a window's outcome."""
+        link = [self.position_m, self.position_m, self.angle_rad]
+        return np.array(link * n_links + [self.force_n] * 2)
+
+    def scaled(self, factor: float) -> ModelError:
+        return ModelError(
+            self.position_m * factor, self.angle_rad * factor, self.force_n * factor
+        )
+
+
+DEFAULT_ERROR = ModelError()
+"""About the shipped push GNN's error 25 steps ahead from the true states of the test pushes:
+7.1 mm and 2.5 deg on articulated objects, 8.8 mm and 3.1 deg on heterogeneous ones, and its
+one-step finger force error 0.76 N and 1.34 N (docs/results.md)."""
+
+
+@dataclass(frozen=True)
+class RecordedPush:
+    """One recorded push: time_s [T]; arm_pose [T, 4] (x, y, z m, yaw rad); object_pose
+    [T, L, 3] (x, y m, theta rad per link, true)."""
+
+    spec: ObjectSpec
+    time_s: FloatArray
+    arm_pose: FloatArray
+    object_pose: FloatArray
+
+    @classmethod
+    def read(cls, folder: Path) -> RecordedPush | None:
+        """The push recorded in an episode folder; None for a pull or a push too short for a
+        window."""
+        meta = json.loads((folder / "meta.json").read_text(encoding="utf-8"))
+        truth = meta.get("ground_truth") or {}
+        if "object" not in truth:
+            raise DataError(f"{folder}: no ground truth; only simulated runs can be replayed")
+        if meta.get("action", {}).get("kind") != "push":
+            return None
+        with np.load(folder / "data.npz") as data:
+            if "object_pose" not in data.files:
+                return None
+            push = cls(ObjectSpec.model_validate(truth["object"]), data["time_s"],
+                       data["arm_pose"], data["object_pose"])  # fmt: skip
+        return push if len(push.time_s) > MIN_WINDOW_STEPS else None
+
+
+def first_window_steps(steps: int) -> list[int]:
+    """The first step of each window of a push of ``steps`` recorded steps."""
+    return [step for step in range(0, steps - 1, WINDOW_STEPS)
+            if steps - 1 - step >= MIN_WINDOW_STEPS]  # fmt: skip
+
+
+def parameter_names(spec: ObjectSpec) -> tuple[str, ...]:
+    """The parameters a replay varies, in its order: m, f, com_x, com_y per link, then the
+    hinge's f_j_0 (a welded pair's joint has none)."""
+    names = [f"{key}_{i}" for i in range(len(spec.links)) for key in ("m", "f", "com_x", "com_y")]
+    return tuple(names + (["f_j_0"] if spec.joint is not None else []))
+
+
+class PushReplay:
+    """The simulated world of one object, whose parameters can be set between replays."""
+
+    def __init__(self, spec: ObjectSpec) -> None:
+        xml = build_mjcf(spec, GRIPPER, TIMESTEP_S, spec.table_tilt_rad)
+        self.model = mujoco.MjModel.from_xml_string(xml)
+        self.data = mujoco.MjData(self.model)
+        self.index = SimIndex.of(self.model, len(spec.links))
+        self.names = parameter_names(spec)
+        self.truth = np.array([spec.parameters()[name] for name in self.names])
+        model = self.model
+        self._geoms = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"link{i}_geom")
+                       for i in range(len(spec.links))]  # fmt: skip
+        self._free = model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT,
+                                                         "object")]  # fmt: skip
+        hinge = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "hinge")
+        self._hinge = None if hinge < 0 else (model.jnt_qposadr[hinge], model.jnt_dofadr[hinge])
+        bodies = self.index.link_bodies
+        self._inertia_per_kg = model.body_inertia[bodies] / model.body_mass[bodies, None]
+        self._state = mujoco.mjtState.mjSTATE_INTEGRATION
+        servos = self.index.arm_actuators  # integrated-velocity servos: gain kp, bias -kv
+        self._servo_act = model.actuator_actadr[servos]
+        self._servo_kp = model.actuator_gainprm[servos, 0]
+        self._servo_kv = -model.actuator_biasprm[servos, 2]
+
+    def set_parameters(self, values: FloatArray) -> None:
+        """Set m (kg, the inertia scaled with it), f, com (m, link frame) per link and the
+        hinge's friction (N m): ``values`` [P] in :attr:`names` order."""
+        model = self.model
+        for i, body in enumerate(self.index.link_bodies):
+            mass_kg, friction, com_x, com_y = values[4 * i : 4 * i + 4]
+            model.body_mass[body] = mass_kg
+            model.body_inertia[body] = self._inertia_per_kg[i] * mass_kg
+            model.body_ipos[body, :2] = (com_x, com_y)
+            model.geom_friction[self._geoms[i], 0] = friction
+        if self._hinge is not None:
+            model.dof_frictionloss[self._hinge[1]] = values[-1]
+        mujoco.mj_setConst(model, self.data)
+
+    def start(self, push: RecordedPush) -> None:
+        """The world at the push's first recorded step: links at rest at their poses, the
+        gripper at its pose with the fingers closed."""
+        model, data, index = self.model, self.data, self.index
+        mujoco.mj_resetData(model, data)
+        x, y, theta = push.object_pose[0, 0]
+        data.qpos[self._free : self._free + 7] = [x, y, 0.0, math.cos(theta / 2), 0.0, 0.0,
+                                                  math.sin(theta / 2)]  # fmt: skip
+        if self._hinge is not None:
+            data.qpos[self._hinge[0]] = push.object_pose[0, 1, 2] - theta
+        data.qpos[index.arm_qpos] = push.arm_pose[0]
+        data.act[model.actuator_actadr[index.arm_actuators]] = push.arm_pose[0]
+        data.qpos[index.finger_qpos] = 0.0
+        data.ctrl[index.finger_actuators] = 0.0
+        mujoco.mj_forward(model, data)
+
+    def link_poses(self) -> FloatArray:
+        """[L, 3] = (x_m, y_m, theta_rad) of the link frames."""
+        bodies = self.index.link_bodies
+        rotation = self.data.xmat[bodies]
+        theta = np.arctan2(rotation[:, 3], rotation[:, 0])
+        return np.column_stack([self.data.xpos[bodies, :2], theta])
+
+    def finger_force_n(self) -> FloatArray:
+        """Total force [2] (world x, y, N) of the object on both pads, as the tactile sum."""
+        return pad_forces(self.model, self.data, self.index.pad_geoms)[:, :2].sum(axis=0)
+
+    def advance(self, push: RecordedPush, step: int) -> None:
+        """Control step ``step`` -> ``step + 1``: the gripper at the recorded velocity, its
+        servo's target put where it leads the recorded pose by the servo's lag (its speed
+        and the finger force over its stiffness), so that no lag adds up along the push."""
+        dt_s = float(push.time_s[step + 1] - push.time_s[step])
+        velocity = (push.arm_pose[step + 1] - push.arm_pose[step]) / dt_s
+        load = np.zeros(4)
+        load[:2] = self.finger_force_n()
+        target = push.arm_pose[step] + (self._servo_kv * velocity - load) / self._servo_kp
+        self.data.act[self._servo_act] = target
+        self.data.ctrl[self.index.arm_actuators] = velocity
+        mujoco.mj_step(self.model, self.data, nstep=max(1, round(dt_s / TIMESTEP_S)))
+
+    def run(
+        self, push: RecordedPush, values: FloatArray | None = None
+    ) -> tuple[FloatArray, FloatArray]:
+        """The whole push replayed with ``values`` (default: the true parameters): link
+        poses [T, L, 3] and the finger force [T, 2] at each recorded step."""
+        self.set_parameters(self.truth if values is None else values)
+        self.start(push)
+        poses, forces = [self.link_poses()], [self.finger_force_n()]
+        for step in range(len(push.time_s) - 1):
+            self.advance(push, step)
+            poses.append(self.link_poses())
+            forces.append(self.finger_force_n())
+        return np.array(poses), np.array(forces)
+
+    def window_starts(self, push: RecordedPush) -> list[tuple[int, FloatArray]]:
+        """(step, simulator state) at the start of each window of the true replay."""
+        self.set_parameters(self.truth)
+        self.start(push)
+        starts = []
+        size = mujoco.mj_stateSize(self.model, self._state)
+        first_steps = first_window_steps(len(push.time_s))
+        for step in range(len(push.time_s) - 1):
+            if step in first_steps:
+                state = np.empty(size)
+                mujoco.mj_getState(self.model, self.data, state, self._state)
+                starts.append((step, state))
+            self.advance(push, step)
+        return starts
+
+    def window_outcome(
+        self, push: RecordedPush, start: tuple[int, FloatArray], values: FloatArray
+    ) -> FloatArray:
+        """From a window's start with ``values``: each link's change of pose and the mean
+        finger force, [3 L + 2]."""
+        step, state = start
+        self.set_parameters(values)
+        mujoco.mj_setState(self.model, self.data, state, self._state)
+        mujoco.mj_forward(self.model, self.data)
+        before = self.link_poses()
+        stop = min(step + WINDOW_STEPS, len(push.time_s) - 1)
+        forces = []
+        for k in range(step, stop):
+            self.advance(push, k)
+            forces.append(self.finger_force_n())
+        change = self.link_poses() - before
+        change[:, 2] = np.angle(np.exp(1j * change[:, 2]))
+        return np.concatenate([change.ravel(), np.mean(forces, axis=0)])
+
+
+def finite_steps(names: Sequence[str]) -> FloatArray:
+    """Half the central-difference step [P] of each parameter."""
+    return np.array([FINITE_STEP[family_of(name)] for name in names])
+
+
+def push_jacobian(replay: PushReplay, push: RecordedPush) -> FloatArray:
+    """d(window outcome)/d(parameters) of every window of a push: [W (3 L + 2), P]."""
+    steps = finite_steps(replay.names)
+    blocks = []
+    for start in replay.window_starts(push):
+        columns = []
+        for j, step in enumerate(steps):
+            up, down = replay.truth.copy(), replay.truth.copy()
+            up[j] += step
+            down[j] -= step
+            change = (replay.window_outcome(push, start, up)
+                      - replay.window_outcome(push, start, down))  # fmt: skip
+            columns.append(change / (2 * step))
+        blocks.append(np.array(columns).T)
+    return np.concatenate(blocks)
+
+
+def prior_covariance(spec: ObjectSpec) -> FloatArray:
+    """Covariance [P, P] of the object set's sampling distributions at this object's links:
+    m, f and f_j uniform over their ranges, each CoM uniform in its footprint shrunk by
+    :data:`vistac.objects.COM_SHRINK`."""
+    names = parameter_names(spec)
+    cov = np.zeros((len(names), len(names)))
+    for i, link in enumerate(spec.links):
+        row = 4 * i
+        cov[row, row] = (MASS_RANGE_KG[1] - MASS_RANGE_KG[0]) ** 2 / 12
+        cov[row + 1, row + 1] = (FRICTION_RANGE[1] - FRICTION_RANGE[0]) ** 2 / 12
+        cov[row + 2 : row + 4, row + 2 : row + 4] = polygon_centroid_covariance(
+            COM_SHRINK * link.polygon()
+        )[1]
+    if spec.joint is not None:
+        cov[-1, -1] = (JOINT_FRICTION_RANGE_NM[1] - JOINT_FRICTION_RANGE_NM[0]) ** 2 / 12
+    return cov
+
+
+def posterior_covariance(
+    jacobian: FloatArray, prior: FloatArray, noise_std: FloatArray
+) -> FloatArray:
+    """``(P0^-1 + J^T R^-1 J)^-1``: jacobian [N, P], prior [P, P], noise_std [N] (R its
+    squares on the diagonal). Returns [P, P]."""
+    weighted = jacobian / noise_std[:, None] ** 2
+    return np.asarray(np.linalg.inv(np.linalg.inv(prior) + jacobian.T @ weighted))
+
+
+def squared_errors(names: Sequence[str], cov: FloatArray) -> dict[str, float]:
+    """Expected squared error per table row (``m_0``, ``CoM_0`` = com_x + com_y, ``f_j_0``)
+    of a Bayes estimate with posterior covariance ``cov`` [P, P]."""
+    rows: dict[str, float] = {}
+    for j, name in enumerate(names):
+        key, link = name.rsplit("_", 1)
+        row = f"CoM_{link}" if key.startswith("com_") else name
+        rows[row] = rows.get(row, 0.0) + float(cov[j, j])
+    return rows
+
+
+@dataclass(frozen=True)
+class ObjectInformation:
+    """A run's pushes (their episode folders) and each one's Jacobian [W (3 L + 2), P]."""
+
+    spec: ObjectSpec
+    folders: list[Path]
+    jacobians: list[FloatArray]
+
+    @property
+    def jacobian(self) -> FloatArray:
+        """Every push's windows: [sum W (3 L + 2), P]."""
+        return np.concatenate(self.jacobians)
+
+    def squared_errors(self, error: ModelError) -> dict[str, float]:
+        jacobian = self.jacobian
+        windows = len(jacobian) // (3 * len(self.spec.links) + 2)
+        noise = np.tile(error.per_window(len(self.spec.links)), windows)
+        cov = posterior_covariance(jacobian, prior_covariance(self.spec), noise)
+        return squared_errors(parameter_names(self.spec), cov)
+
+
+def run_information(run_dir: Path) -> ObjectInformation | None:
+    """The Jacobian of every push a simulated run recorded; None when it recorded none."""
+    folders = sorted(p for p in (run_dir / "episodes").glob("*") if (p / "meta.json").is_file())
+    pushes = [(folder, push) for folder in folders
+              if (push := RecordedPush.read(folder)) is not None]  # fmt: skip
+    if not pushes:
+        return None
+    replay = PushReplay(pushes[0][1].spec)
+    return ObjectInformation(pushes[0][1].spec, [folder for folder, _ in pushes],
+                             [push_jacobian(replay, push) for _, push in pushes])  # fmt: skip
+
+
+def nrmse_rows(
+    objects: Iterable[ObjectInformation], error: ModelError, ranges: dict[str, float]
+) -> dict[str, float]:
+    """Expected NRMSE per row over the objects (RMS over them, normalised by the family's
+    range) and ``overall`` (the mean of the rows), as ``vistac eval``'s tables."""
+    collected: dict[str, list[float]] = {}
+    for info in objects:
+        for row, value in info.squared_errors(error).items():
+            collected.setdefault(row, []).append(value)
+    rows = {row: math.sqrt(float(np.mean(values))) / ranges[family_of(row)]
+            for row, values in collected.items()}  # fmt: skip
+    rows["overall"] = float(np.mean(list(rows.values())))
+    return rows
+
+
+def run_folders(folder: Path, variant: str) -> list[Path]:
+    """The run folders under ``folder``: itself when it is a run (``episodes/``), else a
+    ``vistac eval`` folder's ``runs/*/VARIANT``."""
+    if (folder / "episodes").is_dir():
+        return [folder]
+    runs = sorted(p for p in (folder / "runs").glob(f"*/{variant}") if (p / "episodes").is_dir())
+    if not runs:
+        raise ConfigError(
+            f"{folder}: neither a run folder (with episodes/) nor a `vistac eval` folder with "
+            f"runs/*/{variant}/episodes; give a run's or an evaluation's --out folder, and "
+            f"--variant the column whose pushes to replay"
+        )
+    return runs
+
+
+def collect_information(runs: Sequence[Path]) -> dict[str, list[ObjectInformation]]:
+    """:func:`run_information` of every run, by object type; DataError when no run recorded
+    a push."""
+    by_type: dict[str, list[ObjectInformation]] = {}
+    for run in runs:
+        info = run_information(run)
+        if info is None:
+            log.warning("%s: no push to replay (pulls are not replayed)", run)
+            continue
+        by_type.setdefault(info.spec.type, []).append(info)
+    if not by_type:
+        raise DataError("no run recorded a push: only pushes are replayed")
+    return by_type
+
+
+def information_tables(
+    by_type: dict[str, list[ObjectInformation]], error: ModelError, scales: Sequence[float]
+) -> dict[str, dict[str, dict[str, float]]]:
+    """{object type: {"x SCALE": {row: expected NRMSE, "overall", "runs"}}} at ``error``
+    times each scale."""
+    ranges = parameter_ranges()
+    return {
+        kind: {f"x {scale:g}": nrmse_rows(infos, error.scaled(scale), ranges)
+               | {"runs": float(len(infos))} for scale in scales}
+        for kind, infos in by_type.items()
+    }  # fmt: skip
+
+
+def model_agreement(
+    by_type: dict[str, list[ObjectInformation]], model: Any, error: ModelError
+) -> dict[str, dict[str, dict[str, float]]]:
+    """{object type: :func:`sensitivity_agreement` of ``model`` over its runs' pushes}."""
+    agreement = {}
+    for kind, infos in by_type.items():
+        pairs = []
+        for info in infos:
+            recorded = {t.source: t for t in load_trajectories([info.folders[0].parent.parent])}
+            for folder, sim in zip(info.folders, info.jacobians, strict=True):
+                trajectory = recorded.get(str(folder))
+                if trajectory is not None:
+                    names = parameter_names(info.spec)
+                    pairs.append((model_jacobian(model, trajectory, names), sim,
+                                  len(info.spec.links)))  # fmt: skip
+        agreement[kind] = sensitivity_agreement(pairs, parameter_names(infos[0].spec), error)
+    return agreement
+
+
+def information_markdown(
+    tables: dict[str, dict[str, dict[str, float]]], error: ModelError
+) -> list[str]:
+    """The tables as markdown: per object type, a row per model-error scale."""
+    lines = [
+        "# What the pushes show (expected NRMSE at a model error)",
+        "",
+        f"A process model that moved with the parameters as the simulator does and erred per "
+        f"{WINDOW_STEPS}-step window by {error.position_m * 1e3:.1f} mm, "
+        f"{math.degrees(error.angle_rad):.1f} deg and {error.force_n:.2f} N (times the scale): "
+        "the linearised Bayes posterior of the parameters from these pushes.",
+    ]
+    for kind, scales in tables.items():
+        rows = [row for row in next(iter(scales.values())) if row not in ("overall", "runs")]
+        lines += ["", f"## {kind} objects", "",
+                  "| model error | " + " | ".join(rows) + " | overall | runs |",
+                  "|---|" + "---:|" * (len(rows) + 2)]  # fmt: skip
+        for scale, values in scales.items():
+            cells = [f"{values[row]:.3f}" for row in [*rows, "overall"]]
+            lines.append(f"| {scale} | " + " | ".join(cells) + f" | {values['runs']:.0f} |")
+    return lines
+
+
+def agreement_markdown(agreement: dict[str, dict[str, dict[str, float]]]) -> list[str]:
+    """Per object type, each parameter's cosine and length ratio (model against simulator)."""
+    lines = ["", "# How the process model moves with the parameters (against the simulator)", "",
+             "Cosine between the model's and the simulator's change of the window outcomes per "
+             "unit of each parameter (1: the same direction), and the ratio of their lengths "
+             "(1: as much), every outcome in units of its model error."]  # fmt: skip
+    for kind, rows in agreement.items():
+        lines += ["", f"## {kind} objects", "", "| | " + " | ".join(rows) + " |",
+                  "|---|" + "---:|" * len(rows)]  # fmt: skip
+        for key, label in (("cosine", "cosine"), ("length_ratio", "length ratio")):
+            lines.append(f"| {label} | " + " | ".join(f"{v[key]:.2f}" for v in rows.values())
+                         + " |")  # fmt: skip
+    return lines
+
+
+def replayed_pushes(
+    trajectories: Sequence[Trajectory], count: int, rng: np.random.Generator
+) -> list[Trajectory]:
+    """Each recorded push of ``trajectories`` replayed ``count`` times from its recorded
+    start along its recorded path, each time with the object's parameters drawn anew
+    (:func:`vistac.objects.redraw_parameters`): the same push on objects that differ only in
+    their parameters. A replay whose object tipped over is left out."""
+    replayed: list[Trajectory] = []
+    for trajectory in trajectories:
+        if trajectory.kind != "push" or trajectory.reflected:
+            continue
+        push = RecordedPush.read(Path(trajectory.source))
+        if push is None:
+            continue
+        replay = PushReplay(push.spec)
+        for _ in range(count):
+            spec = redraw_parameters(push.spec, rng)
+            values = np.array([spec.parameters()[name] for name in replay.names])
+            poses, force_n = replay.run(push, values)
+            poses = unwrap_theta(poses)
+            if too_fast_a_turn(poses, trajectory.dt_s):
+                continue
+            replayed.append(replace(
+                trajectory, source=f"{trajectory.source} (replayed)", spec=spec, poses=poses,
+                twists=central_twist(poses, trajectory.dt_s), force_n=force_n, depth_m=None,
+                camera_pose=None, parameters=spec.parameters(),
+            ))  # fmt: skip
+    return replayed
+
+
+def model_jacobian(model: Any, trajectory: Trajectory, names: Sequence[str]) -> FloatArray:
+    """d(window outcome)/d(parameters ``names``) of a process model: each window rolled out
+    open loop from the recorded true state at its start, as the simulator's windows are
+    replayed (:func:`push_jacobian`). Returns [W (3 L + 2), P]."""
+    layout = StateLayout(trajectory.n_links)
+    states = true_states(trajectory, layout)
+    inputs = process_inputs([trajectory])
+    rows = [layout.index(name) for name in names]
+    steps = torch.as_tensor(finite_steps(names), dtype=DTYPE)
+    blocks = []
+    for first in first_window_steps(trajectory.steps):
+        batch = states[first].repeat(2 * len(rows), 1)  # [2 P, n]: +step, -step per parameter
+        batch[2 * torch.arange(len(rows)), rows] += steps
+        batch[2 * torch.arange(len(rows)) + 1, rows] -= steps
+        x, forces = batch[None], []
+        with torch.no_grad():
+            for step in range(first, min(first + WINDOW_STEPS, trajectory.steps - 1)):
+                prediction = model.predict(x, inputs[step], trajectory.dt_s)
+                forces.append(prediction.force_n[0])
+                x = torch.cat([prediction.pose, x[..., layout.n_pose :]], -1)
+        change = (layout.link_pose(x[0]) - layout.link_pose(batch))[..., :3].numpy()
+        change[..., 2] = np.angle(np.exp(1j * change[..., 2]))
+        outcome = np.concatenate([change.reshape(len(batch), -1),
+                                  torch.stack(forces).mean(0).numpy()], 1)  # fmt: skip
+        blocks.append(((outcome[0::2] - outcome[1::2]) / (2 * steps.numpy()[:, None])).T)
+    return np.concatenate(blocks)
+
+
+def sensitivity_agreement(
+    pairs: Sequence[tuple[FloatArray, FloatArray, int]], names: Sequence[str], error: ModelError
+) -> dict[str, dict[str, float]]:
+    """How a process model's sensitivities match the simulator's: per parameter, over every
+    window of ``pairs`` (model Jacobian, simulator Jacobian, link count), the cosine between
+    the two columns and the ratio of their lengths, each outcome in units of its model error
+    (1: the model moves with the parameter as the simulator does)."""
+    agreement = {}
+    for j, name in enumerate(names):
+        model_column = np.concatenate(
+            [m[:, j] / np.tile(error.per_window(n), len(m) // (3 * n + 2)) for m, _, n in pairs]
+        )
+        sim_column = np.concatenate(
+            [s[:, j] / np.tile(error.per_window(n), len(s) // (3 * n + 2)) for _, s, n in pairs]
+        )
+        lengths = float(np.linalg.norm(model_column)), float(np.linalg.norm(sim_column))
+        agreement[name] = {
+            "cosine": float(model_column @ sim_column / max(lengths[0] * lengths[1], 1e-300)),
+            "length_ratio": float(lengths[0] / max(lengths[1], 1e-300)),
+        }
+    return agreement
+
+
+def skill_model(skill: Path, overrides: list[str], plugins: Plugins) -> Any:
+    """The process model (``components.model``) of a skill file with ``overrides``."""
+    loaded = load_skill(skill, plugins.registry, overrides)
+    block = loaded.raw.get("components", {}).get("model")
+    if block is None:
+        raise ConfigError(f"{skill}: the skill has no components.model to compare")
+    with tempfile.TemporaryDirectory() as scratch:
+        return build_components({"model": block}, Path(scratch), seed=loaded.seed,
+                                skill_dir=loaded.skill_dir, plugins=plugins).component("model")
