@@ -561,6 +561,18 @@ def test_tiny_training_gives_checkpoints_the_explore_skill_can_use(tmp_path: Pat
         "--set", f"components.filter.with.noise_checkpoint={out / 'obs_noise_push.pt'}",
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
+    # The same data again with each training push also replayed with redrawn parameters.
+    preset = tmp_path / "replayed.yaml"
+    preset.write_text(json.dumps({
+        "models": ["gnn"], "interactions": ["push"], "hidden": 8, "epochs": 1,
+        "noise_epochs": 1, "filter_epochs": 0, "batch_size": 8, "replayed_pushes": 2,
+    }), encoding="utf-8")  # fmt: skip
+    again = run_vistac("-q", "train", str(SKILLS / "collect_pushes.yaml"), "--out",
+                       str(tmp_path / "replayed"), "--preset", str(preset), "--data",
+                       str(out / "data"))  # fmt: skip
+    assert again.returncode == 0, again.stderr
+    windows = json.loads((tmp_path / "replayed/train.json").read_text())["push"]["windows"]
+    assert windows["replayed"] == 2 * windows["train"] > 0
 
 
 def test_a_feed_forward_alone_trains_one_model_per_link_count(tmp_path: Path) -> None:

@@ -7,7 +7,9 @@
    loss = Gaussian NLL of the true next pose under the predicted mean and the learned
    process noise + MSE of the mean + NLL of the measured finger force (IV-B2).
    With ``missed_pushes``, each recorded push also goes in moved to miss the object
-   (:func:`vistac.plugins.filters.data.missed_push`).
+   (:func:`vistac.plugins.filters.data.missed_push`); with ``replayed_pushes``, each
+   also goes in replayed in the simulator with the object's parameters drawn anew
+   (:func:`vistac.plugins.filters.information.replayed_pushes`).
 3. Observation noise: ObsNoiseNet by the NLL of the measured depth image and force around
    the image projected at the true pose (the observation-noise term of IV-B2).
 4. End to end: ``filter_epochs`` passes through the dual filter on windows of a third of a
@@ -49,6 +51,7 @@ from vistac.plugins.filters.data import (
     true_states,
 )
 from vistac.plugins.filters.dual import Belief, DualFilter
+from vistac.plugins.filters.information import replayed_pushes
 from vistac.plugins.filters.models import sidecar_path
 from vistac.plugins.filters.nets import RATE_SCALE_RADPS, SPEED_SCALE_MPS
 from vistac.plugins.filters.observation import (
@@ -129,6 +132,13 @@ class TrainConfig(BaseModel):
         description="also train the process models on each recorded push moved to miss the "
         "object (it stays at rest): they learn that only contact moves it",
     )
+    replayed_pushes: int = Field(
+        default=0, ge=0,
+        description="also train the process models on each recorded push replayed this many "
+        "times in the simulator from its start along its path, each time with the object's "
+        "parameters drawn anew: the same push on objects that differ only in their parameters "
+        "(vistac.plugins.filters.information.replayed_pushes)",
+    )  # fmt: skip
     mirror: bool = Field(
         default=False,
         description="train the process models on each window or its mirror image, reflected "
@@ -590,6 +600,10 @@ def train_interaction(
         windows["missed"] = stack_equal_length(
             missed_pushes(data["train"]), window_steps(data["train"])
         )
+    if config.replayed_pushes and kind == "push":
+        replayed = replayed_pushes(data["train"], config.replayed_pushes,
+                                   np.random.default_rng([config.seed, 1]))  # fmt: skip
+        windows["replayed"] = stack_equal_length(replayed, window_steps(data["train"]))
     _check_windows(kind, windows, config)
     rng = np.random.default_rng(config.seed)
     report: dict[str, Any] = {"windows": {k: len(v) for k, v in windows.items()}}
@@ -701,7 +715,8 @@ def _train_model(
     generator = torch.Generator().manual_seed(config.seed)
 
     def train() -> Iterator[Tensor]:
-        for batch in batches(windows["train"] + windows.get("missed", []), config.batch_size, rng):
+        extra = windows.get("missed", []) + windows.get("replayed", [])
+        for batch in batches(windows["train"] + extra, config.batch_size, rng):
             if config.mirror:
                 batch = [mirrored(w) if flip else w for w, flip in zip(
                     batch, rng.random(len(batch)) < 0.5, strict=True)]  # fmt: skip
