@@ -330,6 +330,9 @@ def cmd_information(args: argparse.Namespace) -> int:
         math.radians(args.angle_error_deg) if args.angle_error_deg else error.angle_rad,
         args.force_error_n or error.force_n,
     )
+    if args.out is not None and args.out.is_dir():
+        raise ConfigError(f"--out {args.out} is a folder; give a file, e.g. "
+                          f"{args.out / 'information.json'}")  # fmt: skip
     model = None if args.skill is None else skill_model(args.skill, args.set, _plugins(args))
     runs = run_folders(args.folder, args.variant)
     by_type = collect_information(runs)
@@ -343,6 +346,7 @@ def cmd_information(args: argparse.Namespace) -> int:
         lines += agreement_markdown(report["agreement"])
     print("\n".join(lines))
     if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         write_json(args.out, report)
     return 0
 

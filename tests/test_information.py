@@ -90,10 +90,10 @@ def test_parameters_set_on_the_model_equal_a_world_built_with_them() -> None:
 
 def test_the_force_of_a_push_through_the_com_shows_the_friction_load() -> None:
     """Quasi-static: the pad balances the table's friction, m f g, so the mean force moves
-    by about m g per unit of friction (8 % more over f 0.22-0.38). A heavier box of the same load needs a little more force
-    in this simulator (measured: 4 % more than m f g at 0.8 kg, +0.15 N per kg at a fixed
-    load), so m moves it by f g and somewhat more. Moving the CoM across the push line turns
-    the box; moving it along the line does little."""
+    by about m g per unit of friction (8 % more over f 0.22-0.38). A heavier box of the same
+    load needs a little more force in this simulator (measured: 4 % more than m f g at 0.8 kg,
+    +0.15 N per kg at a fixed load), so m moves it by f g and somewhat more. Moving the CoM
+    across the push line turns the box; moving it along the line does little."""
     mass_kg, friction = 0.8, 0.3
     spec = box(mass_kg=mass_kg, friction=friction)
     jacobian = push_jacobian(PushReplay(spec), straight_push(spec, 5.0))
@@ -154,6 +154,12 @@ def test_information_refuses_a_folder_without_runs(
         main(["-q", "information", str(tmp_path), "--scale", "0"])
     assert exit_info.value.code == 2
     assert "not a finite number above 0" in capsys.readouterr().err
+    assert main(["-q", "information", str(tmp_path), "--out", str(tmp_path)]) == 2
+    assert "is a folder; give a file" in capsys.readouterr().err
+    collect = str(ROOT / "skills/collect_pushes.yaml")  # a skill without a process model
+    assert main(["-q", "information", str(tmp_path), "--skill", collect]) == 2
+    assert "no components.model to compare" in capsys.readouterr().err
+    assert sorted(tmp_path.iterdir()) == []  # nothing written
 
 
 def test_window_steps_are_the_trainings_rollout() -> None:
