@@ -56,7 +56,7 @@ from vistac.plugins.filters.evaluate import family_of, parameter_ranges
 from vistac.plugins.filters.state import DTYPE, StateLayout
 from vistac.plugins.hardware.sim.mjcf import GripperGeometry, build_mjcf
 from vistac.plugins.hardware.sim.tactile import pad_forces
-from vistac.plugins.hardware.sim.world import SimIndex
+from vistac.plugins.hardware.sim.world import SimIndex, planar_poses
 from vistac.skill import load_skill
 from vistac.testing import build_components
 from vistac.types import FloatArray
@@ -207,10 +207,7 @@ class PushReplay:
 
     def link_poses(self) -> FloatArray:
         """[L, 3] = (x_m, y_m, theta_rad) of the link frames."""
-        bodies = self.index.link_bodies
-        rotation = self.data.xmat[bodies]
-        theta = np.arctan2(rotation[:, 3], rotation[:, 0])
-        return np.column_stack([self.data.xpos[bodies, :2], theta])
+        return planar_poses(self.data, self.index.link_bodies)
 
     def finger_force_n(self) -> FloatArray:
         """Total force [2] (world x, y, N) of the object on both pads, as the tactile sum."""

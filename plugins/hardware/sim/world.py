@@ -65,6 +65,13 @@ class SimIndex:
         )
 
 
+def planar_poses(data: mujoco.MjData, bodies: np.ndarray) -> FloatArray:
+    """The world frames of ``bodies`` [B] in the table's plane: [B, 3] = (x_m, y_m,
+    theta_rad)."""
+    rotation = data.xmat[bodies]
+    theta = np.arctan2(rotation[:, 3], rotation[:, 0])
+    return np.column_stack([data.xpos[bodies, :2], theta])
+
 class MujocoWorld(Component):
     """Simulated world; other ``sim.*`` components use its ``model``, ``data`` and ``index``."""
 
@@ -152,11 +159,7 @@ class MujocoWorld(Component):
 
     def link_poses(self) -> FloatArray:
         """Link body frames in the world: [L, 3] = (x_m, y_m, theta_rad)."""
-        bodies = self.index.link_bodies
-        xy = self.data.xpos[bodies, :2]
-        rot = self.data.xmat[bodies]
-        theta = np.arctan2(rot[:, 3], rot[:, 0])
-        return np.column_stack([xy, theta])
+        return planar_poses(self.data, self.index.link_bodies)
 
     def ground_truth_poses(self) -> FloatArray:
         """True link poses [L, 3] for recording (alias of :meth:`link_poses`)."""
