@@ -314,11 +314,11 @@ def cmd_information(args: argparse.Namespace) -> int:
     from vistac.plugins.filters.information import (
         WINDOW_STEPS,
         ModelError,
-        agreement_markdown,
         collect_information,
         information_markdown,
         information_tables,
-        model_agreement,
+        model_markdown,
+        model_reports,
         run_folders,
         skill_model,
     )
@@ -336,14 +336,15 @@ def cmd_information(args: argparse.Namespace) -> int:
     model = None if args.skill is None else skill_model(args.skill, args.set, _plugins(args))
     runs = run_folders(args.folder, args.variant)
     by_type = collect_information(runs)
-    tables = information_tables(by_type, error, args.scale)
-    lines = information_markdown(tables, error)
-    report: dict[str, Any] = {"runs": [str(run) for run in runs],
-                              "model_error": dataclasses.asdict(error),
-                              "window_steps": WINDOW_STEPS, "tables": tables}  # fmt: skip
-    if model is not None:
-        report["agreement"] = model_agreement(by_type, model, error)
-        lines += agreement_markdown(report["agreement"])
+    reports = {} if model is None else model_reports(by_type, model, error)
+    own = {kind: report.error for kind, report in reports.items()}
+    tables = information_tables(by_type, error, args.scale, own)
+    lines = information_markdown(tables, error) + (model_markdown(reports) if reports else [])
+    report: dict[str, Any] = {
+        "runs": [str(run) for run in runs], "model_error": dataclasses.asdict(error),
+        "window_steps": WINDOW_STEPS, "tables": tables,
+        "model": {kind: dataclasses.asdict(reports[kind]) for kind in reports},
+    }  # fmt: skip
     print("\n".join(lines))
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

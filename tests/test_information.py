@@ -18,6 +18,7 @@ from vistac.plugins.filters.information import (
     ObjectInformation,
     PushReplay,
     RecordedPush,
+    measured_error,
     parameter_names,
     posterior_covariance,
     prior_covariance,
@@ -144,6 +145,16 @@ def test_more_pushes_show_more() -> None:
         assert double[row] < single[row] < prior[row]
 
 
+def test_measured_error_pools_links_and_axes() -> None:
+    one_link = np.array([[0.003, -0.004, 0.1, 1.0, -1.0]])  # x, y, theta, force x, y
+    two_links = np.array([[0.0, 0.0, 0.0, 0.003, 0.004, -0.1, 2.0, 0.0]])
+    error = measured_error([(one_link, 1), (two_links, 2)])
+    # position: 3, -4, 0, 0, 3, 4 mm; angle: 0.1, 0, -0.1; force: 1, -1, 2, 0 N
+    assert error.position_m == pytest.approx(math.sqrt(50e-6 / 6))
+    assert error.angle_rad == pytest.approx(math.sqrt(0.02 / 3))
+    assert error.force_n == pytest.approx(math.sqrt(6 / 4))
+
+
 def test_information_refuses_a_folder_without_runs(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -233,10 +244,14 @@ def test_information_of_a_recorded_run_with_the_skills_model(tmp_path: Path) -> 
     assert code == 0
     report = json.loads(out.read_text(encoding="utf-8"))
     table = report["tables"]["homogeneous"]
-    assert list(table) == ["x 1", "x 0.5"] and table["x 1"]["runs"] == 1
+    assert list(table) == ["x 1", "x 0.5", "own"] and table["x 1"]["runs"] == 1
     prior = squared_errors(parameter_names(spec), prior_covariance(spec))
     for row in ("m_0", "f_0", "CoM_0"):
         assert table["x 0.5"][row] < table["x 1"][row]
     assert table["x 1"]["f_0"] < math.sqrt(prior["f_0"]) / 0.4
-    agreement = report["agreement"]["homogeneous"]
+    model = report["model"]["homogeneous"]
+    agreement = model["agreement"]
     assert agreement["f_0"]["cosine"] > 0.8 and agreement["com_y_0"]["cosine"] > 0.5
+    # Its own error on this push, and what the push shows at that error.
+    assert 0 < model["error"]["position_m"] < 0.01 and 0 < model["error"]["force_n"] < 1.0
+    assert table["own"]["runs"] == 1 and 0 < table["own"]["overall"] < 0.3

@@ -415,35 +415,55 @@ def collect_information(runs: Sequence[Path]) -> dict[str, list[ObjectInformatio
 
 
 def information_tables(
-    by_type: dict[str, list[ObjectInformation]], error: ModelError, scales: Sequence[float]
+    by_type: dict[str, list[ObjectInformation]],
+    error: ModelError,
+    scales: Sequence[float],
+    own: dict[str, ModelError] | None = None,
 ) -> dict[str, dict[str, dict[str, float]]]:
     """{object type: {"x SCALE": {row: expected NRMSE, "overall", "runs"}}} at ``error``
-    times each scale."""
+    times each scale, and at a model's own error on that type (``own``, row "own")."""
     ranges = parameter_ranges()
-    return {
-        kind: {f"x {scale:g}": nrmse_rows(infos, error.scaled(scale), ranges)
-               | {"runs": float(len(infos))} for scale in scales}
-        for kind, infos in by_type.items()
-    }  # fmt: skip
-
-
-def model_agreement(
-    by_type: dict[str, list[ObjectInformation]], model: Any, error: ModelError
-) -> dict[str, dict[str, dict[str, float]]]:
-    """{object type: :func:`sensitivity_agreement` of ``model`` over its runs' pushes}."""
-    agreement = {}
+    tables: dict[str, dict[str, dict[str, float]]] = {}
     for kind, infos in by_type.items():
-        pairs = []
+        errors = {f"x {scale:g}": error.scaled(scale) for scale in scales}
+        if own is not None and kind in own:
+            errors["own"] = own[kind]
+        tables[kind] = {label: nrmse_rows(infos, value, ranges) | {"runs": float(len(infos))}
+                        for label, value in errors.items()}  # fmt: skip
+    return tables
+
+
+@dataclass(frozen=True)
+class ModelReport:
+    """How a process model did on one object type's windows: its :func:`sensitivity_agreement`
+    with the simulator and its own RMS error at the true parameters."""
+
+    agreement: dict[str, dict[str, float]]
+    error: ModelError
+
+
+def model_reports(
+    by_type: dict[str, list[ObjectInformation]], model: Any, error: ModelError
+) -> dict[str, ModelReport]:
+    """{object type: ``model`` on its runs' pushes}; ``error`` weighs the outcomes for the
+    agreement."""
+    reports = {}
+    for kind, infos in by_type.items():
+        pairs, errors = [], []
         for info in infos:
             recorded = {t.source: t for t in load_trajectories([info.folders[0].parent.parent])}
+            names, n_links = parameter_names(info.spec), len(info.spec.links)
             for folder, sim in zip(info.folders, info.jacobians, strict=True):
                 trajectory = recorded.get(str(folder))
                 if trajectory is not None:
-                    names = parameter_names(info.spec)
-                    pairs.append((model_jacobian(model, trajectory, names), sim,
-                                  len(info.spec.links)))  # fmt: skip
-        agreement[kind] = sensitivity_agreement(pairs, parameter_names(infos[0].spec), error)
-    return agreement
+                    jacobian, own = model_jacobian(model, trajectory, names)
+                    pairs.append((jacobian, sim, n_links))
+                    errors.append((own, n_links))
+        reports[kind] = ModelReport(
+            sensitivity_agreement(pairs, parameter_names(infos[0].spec), error),
+            measured_error(errors),
+        )
+    return reports
 
 
 def information_markdown(
@@ -469,15 +489,21 @@ def information_markdown(
     return lines
 
 
-def agreement_markdown(agreement: dict[str, dict[str, dict[str, float]]]) -> list[str]:
-    """Per object type, each parameter's cosine and length ratio (model against simulator)."""
+def model_markdown(reports: dict[str, ModelReport]) -> list[str]:
+    """Per object type, the model's own error and, per parameter, the cosine and length ratio
+    of its sensitivity against the simulator's."""
     lines = ["", "# How the process model moves with the parameters (against the simulator)", "",
-             "Cosine between the model's and the simulator's change of the window outcomes per "
-             "unit of each parameter (1: the same direction), and the ratio of their lengths "
-             "(1: as much), every outcome in units of its model error."]  # fmt: skip
-    for kind, rows in agreement.items():
-        lines += ["", f"## {kind} objects", "", "| | " + " | ".join(rows) + " |",
-                  "|---|" + "---:|" * len(rows)]  # fmt: skip
+             "Its error at the true parameters per window (the row \"own\" above is what the "
+             "pushes show at that error); then per parameter the cosine between the model's and "
+             "the simulator's change of the window outcomes per unit of the parameter (1: the "
+             "same direction), and the ratio of their lengths (1: as much), every outcome in "
+             "units of the model error of the first table."]  # fmt: skip
+    for kind, report in reports.items():
+        rows, own = report.agreement, report.error
+        lines += ["", f"## {kind} objects", "",
+                  f"Own error: {own.position_m * 1e3:.1f} mm, "
+                  f"{math.degrees(own.angle_rad):.2f} deg, {own.force_n:.2f} N.", "",
+                  "| | " + " | ".join(rows) + " |", "|---|" + "---:|" * len(rows)]  # fmt: skip
         for key, label in (("cosine", "cosine"), ("length_ratio", "length ratio")):
             lines.append(f"| {label} | " + " | ".join(f"{v[key]:.2f}" for v in rows.values())
                          + " |")  # fmt: skip
@@ -514,34 +540,62 @@ def replayed_pushes(
     return replayed
 
 
-def model_jacobian(model: Any, trajectory: Trajectory, names: Sequence[str]) -> FloatArray:
+def model_jacobian(
+    model: Any, trajectory: Trajectory, names: Sequence[str]
+) -> tuple[FloatArray, FloatArray]:
     """d(window outcome)/d(parameters ``names``) of a process model: each window rolled out
     open loop from the recorded true state at its start, as the simulator's windows are
-    replayed (:func:`push_jacobian`). Returns [W (3 L + 2), P]."""
+    replayed (:func:`push_jacobian`), and the model's error at the true parameters. Returns
+    (jacobian [W (3 L + 2), P], error [W, 3 L + 2] = the model's outcome minus the recorded
+    one)."""
     layout = StateLayout(trajectory.n_links)
     states = true_states(trajectory, layout)
     inputs = process_inputs([trajectory])
     rows = [layout.index(name) for name in names]
-    blocks = []
+    blocks, errors = [], []
     for first in first_window_steps(trajectory.steps):
-        truth = states[first, rows].numpy()
-        up, down = finite_points(names, truth)
-        batch = states[first].repeat(2 * len(rows), 1)  # [2 P, n]: up, down per parameter
-        batch[0::2, rows] = torch.as_tensor(up, dtype=DTYPE)
-        batch[1::2, rows] = torch.as_tensor(down, dtype=DTYPE)
-        spans = np.diag(up - down)
+        stop = min(first + WINDOW_STEPS, trajectory.steps - 1)
+        up, down = finite_points(names, states[first, rows].numpy())
+        batch = states[first].repeat(2 * len(rows) + 1, 1)  # up, down per parameter; truth
+        batch[0:-1:2, rows] = torch.as_tensor(up, dtype=DTYPE)
+        batch[1:-1:2, rows] = torch.as_tensor(down, dtype=DTYPE)
         x, forces = batch[None], []
         with torch.no_grad():
-            for step in range(first, min(first + WINDOW_STEPS, trajectory.steps - 1)):
+            for step in range(first, stop):
                 prediction = model.predict(x, inputs[step], trajectory.dt_s)
                 forces.append(prediction.force_n[0])
                 x = torch.cat([prediction.pose, x[..., layout.n_pose :]], -1)
         change = (layout.link_pose(x[0]) - layout.link_pose(batch))[..., :3].numpy()
-        change[..., 2] = np.angle(np.exp(1j * change[..., 2]))
-        outcome = np.concatenate([change.reshape(len(batch), -1),
+        outcome = np.concatenate([_wrapped(change).reshape(len(batch), -1),
                                   torch.stack(forces).mean(0).numpy()], 1)  # fmt: skip
-        blocks.append(((outcome[0::2] - outcome[1::2]) / spans[:, None]).T)
-    return np.concatenate(blocks)
+        spans = np.diag(up - down)
+        blocks.append(((outcome[0:-1:2] - outcome[1:-1:2]) / spans[:, None]).T)
+        recorded = np.concatenate([
+            _wrapped(trajectory.poses[stop] - trajectory.poses[first]).ravel(),
+            trajectory.force_n[first + 1 : stop + 1].mean(axis=0),
+        ])  # fmt: skip
+        errors.append(outcome[-1] - recorded)
+    return np.concatenate(blocks), np.array(errors)
+
+
+def _wrapped(change: FloatArray) -> FloatArray:
+    """A change of poses [..., 3] with its angle wrapped to (-pi, pi] (a copy)."""
+    wrapped = np.array(change, dtype=float)
+    wrapped[..., 2] = np.angle(np.exp(1j * wrapped[..., 2]))
+    return wrapped
+
+
+def measured_error(errors: Sequence[tuple[FloatArray, int]]) -> ModelError:
+    """The RMS model error of windows: ``errors`` holds (error [W, 3 L + 2], L) per push;
+    position over every link's x and y, angle over every link's, force over both axes."""
+    position = np.concatenate([e[:, : 3 * n].reshape(-1, n, 3)[..., :2].ravel()
+                               for e, n in errors])  # fmt: skip
+    angle = np.concatenate([e[:, : 3 * n].reshape(-1, n, 3)[..., 2].ravel() for e, n in errors])
+    force = np.concatenate([e[:, 3 * n :].ravel() for e, n in errors])
+    def rms(values: FloatArray) -> float:
+        return float(np.sqrt(np.mean(np.square(values))))
+
+    return ModelError(rms(position), rms(angle), rms(force))
 
 
 def sensitivity_agreement(
