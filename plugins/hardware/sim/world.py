@@ -72,6 +72,7 @@ def planar_poses(data: mujoco.MjData, bodies: np.ndarray) -> FloatArray:
     theta = np.arctan2(rotation[:, 3], rotation[:, 0])
     return np.column_stack([data.xpos[bodies, :2], theta])
 
+
 class MujocoWorld(Component):
     """Simulated world; other ``sim.*`` components use its ``model``, ``data`` and ``index``."""
 
