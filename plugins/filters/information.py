@@ -369,7 +369,7 @@ def run_information(run_dir: Path) -> ObjectInformation | None:
                              [push_jacobian(replay, push) for _, push in pushes])  # fmt: skip
 
 
-def nrmse_rows(
+def expected_nrmse_rows(
     objects: Iterable[ObjectInformation], error: ModelError, ranges: dict[str, float]
 ) -> dict[str, float]:
     """Expected NRMSE per row over the objects (RMS over them, normalised by the family's
@@ -428,7 +428,8 @@ def information_tables(
         errors = {f"x {scale:g}": error.scaled(scale) for scale in scales}
         if own is not None and kind in own:
             errors["own"] = own[kind]
-        tables[kind] = {label: nrmse_rows(infos, value, ranges) | {"runs": float(len(infos))}
+        runs = {"runs": float(len(infos))}
+        tables[kind] = {label: expected_nrmse_rows(infos, value, ranges) | runs
                         for label, value in errors.items()}  # fmt: skip
     return tables
 
