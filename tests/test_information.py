@@ -23,6 +23,7 @@ from vistac.plugins.filters.information import (
     posterior_covariance,
     prior_covariance,
     push_jacobian,
+    repeated_share,
     replayed_pushes,
     sensitivity_agreement,
     squared_errors,
@@ -155,6 +156,22 @@ def test_measured_error_pools_links_and_axes() -> None:
     assert error.force_n == pytest.approx(math.sqrt(6 / 4))
 
 
+
+def test_repeated_share_of_window_errors() -> None:
+    weights = DEFAULT_ERROR.per_window(1)
+    along = np.array([0.004, 0.0, 0.0, 0.5, 0.0])  # 4 mm and 0.5 N against the push
+    # The same error along each push, pushes in two directions: one error repeated.
+    turned = np.array([0.0, 0.004, 0.0, 0.0, 0.5])  # along +y for a push along +y
+    same = [(np.tile(along, (3, 1)), 0.0), (np.tile(turned, (2, 1)), math.pi / 2)]
+    assert repeated_share(same, weights) == pytest.approx(1.0)
+    # Errors that cancel from window to window repeat nothing.
+    signs = np.array([[1.0], [-1.0], [1.0], [-1.0]])
+    assert repeated_share([(signs * along, 0.3)], weights) == pytest.approx(0.0, abs=1e-12)
+    # Independent errors: about 1 / W.
+    rng = np.random.default_rng(0)
+    noise = [(rng.normal(size=(10, 5)) * weights, rng.uniform(-3, 3)) for _ in range(100)]
+    assert repeated_share(noise, weights) == pytest.approx(1 / 1000, abs=0.002)
+
 def test_information_refuses_a_folder_without_runs(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -255,3 +272,5 @@ def test_information_of_a_recorded_run_with_the_skills_model(tmp_path: Path) -> 
     # Its own error on this push, and what the push shows at that error.
     assert 0 < model["error"]["position_m"] < 0.01 and 0 < model["error"]["force_n"] < 1.0
     assert table["own"]["runs"] == 1 and 0 < table["own"]["overall"] < 0.3
+    assert model["independent_share"] == pytest.approx(1 / 3)  # one push, three windows
+    assert 0 < model["repeated_share"] <= 1

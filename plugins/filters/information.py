@@ -434,6 +434,25 @@ def information_tables(
     return tables
 
 
+def repeated_share(errors: Sequence[tuple[FloatArray, float]], weights: FloatArray) -> float:
+    """How much a model's window errors on one object repeat: the share of their squared size
+    that their mean carries (1 / W for errors independent from window to window, 1 for one
+    error repeated). ``errors``: per push (error [W, 3 L + 2], its push direction, rad), each
+    link's position and the force turned into the push's frame; ``weights`` [3 L + 2]: the
+    scale of each outcome (a model error's :meth:`ModelError.per_window`)."""
+    turned = []
+    for error, pd_rad in errors:
+        cos, sin = math.cos(pd_rad), math.sin(pd_rad)
+        to_push = np.array([[cos, -sin], [sin, cos]])  # row vectors: (x, y) @ to_push
+        frame = np.array(error, dtype=float)
+        n_links = (frame.shape[1] - 2) // 3
+        for first in [3 * link for link in range(n_links)] + [3 * n_links]:
+            frame[:, first : first + 2] = frame[:, first : first + 2] @ to_push
+        turned.append(frame / weights)
+    windows = np.concatenate(turned)
+    return float(np.sum(windows.mean(axis=0) ** 2) / np.sum(np.mean(windows**2, axis=0)))
+
+
 @dataclass(frozen=True)
 class ModelReport:
     """How a process model did on one object type's windows: its :func:`sensitivity_agreement`
@@ -441,6 +460,10 @@ class ModelReport:
 
     agreement: dict[str, dict[str, float]]
     error: ModelError
+    repeated_share: float
+    """:func:`repeated_share` of the errors, the mean over the objects."""
+    independent_share: float
+    """What it would be for errors independent from window to window: the mean of 1 / W."""
 
 
 def model_reports(
@@ -450,19 +473,24 @@ def model_reports(
     agreement."""
     reports = {}
     for kind, infos in by_type.items():
-        pairs, errors = [], []
+        pairs, errors, shares, independent = [], [], [], []
         for info in infos:
             recorded = {t.source: t for t in load_trajectories([info.folders[0].parent.parent])}
             names, n_links = parameter_names(info.spec), len(info.spec.links)
+            own_errors = []
             for folder, sim in zip(info.folders, info.jacobians, strict=True):
                 trajectory = recorded.get(str(folder))
                 if trajectory is not None:
                     jacobian, own = model_jacobian(model, trajectory, names)
                     pairs.append((jacobian, sim, n_links))
                     errors.append((own, n_links))
+                    own_errors.append((own, trajectory.pd_rad))
+            if own_errors:
+                shares.append(repeated_share(own_errors, error.per_window(n_links)))
+                independent.append(1 / sum(len(own) for own, _ in own_errors))
         reports[kind] = ModelReport(
             sensitivity_agreement(pairs, parameter_names(infos[0].spec), error),
-            measured_error(errors),
+            measured_error(errors), float(np.mean(shares)), float(np.mean(independent)),
         )
     return reports
 
@@ -503,7 +531,11 @@ def model_markdown(reports: dict[str, ModelReport]) -> list[str]:
         rows, own = report.agreement, report.error
         lines += ["", f"## {kind} objects", "",
                   f"Own error: {own.position_m * 1e3:.1f} mm, "
-                  f"{math.degrees(own.angle_rad):.2f} deg, {own.force_n:.2f} N.", "",
+                  f"{math.degrees(own.angle_rad):.2f} deg, {own.force_n:.2f} N. The mean of an "
+                  f"object's window errors (each push's frame) carries "
+                  f"{report.repeated_share:.0%} of their squared size "
+                  f"({report.independent_share:.0%} if they were independent: the first "
+                  "table assumes that).", "",
                   "| | " + " | ".join(rows) + " |", "|---|" + "---:|" * len(rows)]  # fmt: skip
         for key, label in (("cosine", "cosine"), ("length_ratio", "length ratio")):
             lines.append(f"| {label} | " + " | ".join(f"{v[key]:.2f}" for v in rows.values())
