@@ -7,15 +7,15 @@ Per window the outcome is each link's change of pose (x, y, theta) and the mean 
 (x, y); central differences, each window started from the replay's own state, give its
 Jacobian with respect to every parameter (m, f, CoM per link; the joint friction of a hinge).
 
-A process model that moved with the parameters exactly as the simulator does, and erred by
-a :class:`ModelError` on each window independently, would learn from these pushes at best the
+A process model that moved with the parameters exactly as the simulator does, and erred by a
+:class:`ModelError` on each window independently, would learn from these pushes at best the
 Bayes posterior of the linearised problem: ``P = (P0^-1 + J^T R^-1 J)^-1`` with ``P0`` the
 covariance of the object set's sampling distributions (:mod:`vistac.objects`) and ``R`` the
-squared model error on the diagonal. Its diagonal, over the runs and normalised by the parameter ranges as ``vistac
-eval`` normalises, is the expected NRMSE of that model: what the pushes show at that model
-error. It is a local figure, at the true parameters: a hinge whose friction holds it still
-through a push shows only that its friction is above what the push asked of it, and counts
-as showing nothing.
+squared model error on the diagonal. Its diagonal, over the runs and normalised by the parameter
+ranges as ``vistac eval`` normalises, is the expected NRMSE of that model: what the pushes show
+at that model error. It is a local figure, at the true parameters: a hinge whose friction holds
+it still through a push shows only that its friction is above what the push asked of it, and
+counts as showing nothing.
 """
 
 from __future__ import annotations
