@@ -16,10 +16,13 @@ from vistac.cli import build_parser, main
 from vistac.errors import ConfigError
 from vistac.objects import load_object
 from vistac.plugins.filters.component import (
+    AXES_CLEAR,
     DualFilterComponent,
+    ModelFrames,
     Prior,
-    footprint_com,
+    frame_yaws,
     nearest_link,
+    outline_axes,
     prior_belief,
     relative_poses,
 )
@@ -30,6 +33,7 @@ from vistac.plugins.filters.data import (
     unwrap_theta,
 )
 from vistac.plugins.filters.dual import Belief
+from vistac.plugins.filters.evaluate import first_poses, run_links
 from vistac.plugins.filters.state import StateLayout
 from vistac.plugins.filters.train import (
     TrainConfig,
@@ -267,7 +271,9 @@ def test_initial_belief_comes_from_the_shape_and_the_prior(tmp_path: Path) -> No
     assert belief.names == StateLayout(1).names
     values = dict(zip(belief.names, belief.mean, strict=True))
     stds = dict(zip(belief.names, belief.std, strict=True))
-    assert values["x_0"] == 0.0 and values["y_0"] == 0.45
+    # the footprint's centroid: the box's centre
+    assert values["x_0"] == pytest.approx(0.0, abs=1e-6)
+    assert values["y_0"] == pytest.approx(0.45, abs=1e-6)
     assert values["m_0"] == pytest.approx(0.9) and stds["m_0"] == pytest.approx(0.4)
     assert values["f_0"] == pytest.approx(0.3) and stds["com_x_0"] == pytest.approx(0.028)
     in_shape = {"plugin": "filters.dual", "with": {"prior": {"com_in_shape": True}}}
@@ -315,20 +321,44 @@ def _standing_link(scale_m: list[float], exponents: list[float], taper: list[flo
                          _box_shape().cloud)  # fmt: skip
 
 
-def test_the_com_prior_is_uniform_over_the_fitted_footprint() -> None:
+def test_model_frames_of_a_fitted_link() -> None:
     """In the link's own frame, wherever it stands and however it is turned: an ellipse (a1,
-    a2) sheared by x += s y has covariance S diag(a1^2, a2^2) S' / 4, S = [[1, s], [0, 1]],
-    about its centre; a near-rectangle tapered linearly (x scaled by 1 + k y / a2) is a
-    trapezoid whose centroid lies k a2 / 3 towards its wide end."""
+    a2) sheared by x += s y keeps its centre, reaches sqrt(a1^2 + s^2 a2^2) along x and has
+    covariance S diag(a1^2, a2^2) S' / 4, S = [[1, s], [0, 1]]; a near-rectangle tapered
+    linearly (x scaled by 1 + k y / a2) is a trapezoid whose centroid lies k a2 / 3 towards
+    its wide end. ``fitted`` frames are the fit's boxes, the footprint's centroid in them;
+    ``trained`` frames stand at the centroid, their half extents measured from there as the
+    training's are."""
     a1_m, a2_m, shear, taper = 0.03, 0.05, 0.4, 0.45
     ellipse = _standing_link([a1_m, a2_m, 0.02], [1.0, 1.0], [0.0, 0.0, shear], 2.0)
-    mean_m, cov_m2 = footprint_com(ellipse)
     stretch = np.array([[1.0, shear], [0.0, 1.0]])
     expected = stretch @ np.diag([a1_m**2, a2_m**2]) @ stretch.T / 4
-    np.testing.assert_allclose(mean_m, np.zeros((1, 2)), atol=2e-5)
-    np.testing.assert_allclose(cov_m2[0], expected, rtol=2e-3, atol=1e-8)
-    trapezoid = _standing_link([a1_m, a2_m, 0.02], [0.1, 0.1], [taper, 0.0], -0.7)
-    np.testing.assert_allclose(footprint_com(trapezoid)[0], [[0.0, taper * a2_m / 3]], atol=5e-4)
+    for convention in ("fitted", "trained"):
+        frames = ModelFrames.of(ellipse, convention)
+        np.testing.assert_allclose(frames.origin_m, np.zeros((1, 2)), atol=2e-5)
+        np.testing.assert_allclose(frames.footprint_mean_m, np.zeros((1, 2)), atol=2e-5)
+        np.testing.assert_allclose(frames.poses, ellipse.initial_poses, atol=2e-5)
+        np.testing.assert_allclose(frames.footprint_cov_m2[0], expected, rtol=2e-3, atol=1e-8)
+    reach_m = [[np.hypot(a1_m, shear * a2_m), a2_m]]
+    np.testing.assert_allclose(frames.half_extents_m, reach_m, rtol=2e-3)
+    np.testing.assert_allclose(ModelFrames.of(ellipse).half_extents_m, [[a1_m, a2_m]])
+    theta = -0.7
+    trapezoid = _standing_link([a1_m, a2_m, 0.02], [0.1, 0.1], [taper, 0.0], theta)
+    shift_m = taper * a2_m / 3
+    fitted = ModelFrames.of(trapezoid)
+    np.testing.assert_array_equal(fitted.poses, trapezoid.initial_poses)
+    np.testing.assert_allclose(fitted.footprint_mean_m, [[0.0, shift_m]], atol=5e-4)
+    np.testing.assert_array_equal(fitted.box_poses(fitted.poses), fitted.poses)
+    frames = ModelFrames.of(trapezoid, "trained")
+    np.testing.assert_allclose(frames.origin_m, [[0.0, shift_m]], atol=5e-4)
+    np.testing.assert_allclose(frames.poses[0, :2],
+                               [0.1 - np.sin(theta) * shift_m, 0.4 + np.cos(theta) * shift_m],
+                               atol=5e-4)  # fmt: skip
+    # eps = 0.1 rounds the corners: the wide end's corners fall 1.5 mm short of a1 (1 + k)
+    np.testing.assert_allclose(frames.half_extents_m, [[a1_m * (1 + taper), a2_m + shift_m]],
+                               atol=2e-3)  # fmt: skip
+    np.testing.assert_allclose(frames.box_poses(frames.poses), trapezoid.initial_poses, atol=1e-12)
+    mean_m, cov_m2 = frames.footprint_mean_m, frames.footprint_cov_m2
     layout = StateLayout(1)
     belief = prior_belief(np.zeros((1, 6)), Prior(), layout, (mean_m, cov_m2))
     block = [layout.index("com_x_0"), layout.index("com_y_0")]
@@ -415,6 +445,34 @@ def test_explore_push_runs_with_each_process_model(tmp_path: Path, model: str) -
     local = (np.cos(theta) * dx + np.sin(theta) * dy, -np.sin(theta) * dx + np.cos(theta) * dy)
     assert (told["com_x_0"], told["com_y_0"]) == pytest.approx(local)
     assert summary["errors"]["com_x_0"] == pytest.approx(abs(belief["com_x_0"]["mean"] - local[0]))
+
+
+def test_trained_link_frames_stand_where_training_puts_them(tmp_path: Path) -> None:
+    """``link_frames: trained`` on a welded rectangle and triangle, end to end: at the first
+    filter step the belief's links stand at the true link frames (the footprint centroids),
+    both turned as the object, or both a half turn off when the fit numbered the links the
+    other way, so that each next link lies on the +x side as in training."""
+    out = tmp_path / "run"
+    result = run_vistac(
+        "-q", "run", str(SKILLS / "explore_push.yaml"), "--out", str(out), *EXPLORE_SHORT,
+        "--set", "components.world.with.object=objects/hetero_rect_tri.yaml",
+        "--set", "components.filter.with.link_frames=trained",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    summary = _summary(out)
+    poses = first_poses(out, summary)
+    assert poses is not None
+    belief, truth = poses
+    links = run_links(summary, poses)
+    assert sorted(links.values()) == [0, 1]
+    for b, t in links.items():
+        assert np.hypot(*(belief[b, :2] - truth[t, :2])) < 0.006
+    turn = np.angle(np.exp(1j * (belief[:, 2] - truth[0, 2])))
+    flipped = links[0] == 1
+    np.testing.assert_allclose(np.abs(turn), np.pi if flipped else 0.0, atol=np.radians(4))
+    bad = run_vistac("validate", str(SKILLS / "explore_push.yaml"),
+                     "--set", "components.filter.with.link_frames=training")  # fmt: skip
+    assert bad.returncode != 0 and "link_frames" in bad.stdout + bad.stderr
 
 
 FF_BY_LINKS = (
@@ -604,3 +662,47 @@ def test_explore_pull_pulls_six_times_and_ends_with_a_belief(tmp_path: Path) -> 
     assert summary["status"] == "success"
     assert [e["action"]["kind"] for e in summary["episodes"]] == ["pull"] * 6
     assert {"m_0", "f_0", "com_x_0"} <= set(summary["belief"])
+
+
+def _dense(polygon: np.ndarray, turn_rad: float, per_edge: int = 60) -> np.ndarray:
+    """A CCW polygon [K, 2] turned by turn_rad about the origin, with per_edge points along
+    each edge: [K per_edge, 2]."""
+    ends = np.roll(polygon, -1, axis=0)
+    fraction = np.arange(per_edge)[None, :, None] / per_edge
+    points = (polygon[:, None] + fraction * (ends - polygon)[:, None]).reshape(-1, 2)
+    c, s = np.cos(turn_rad), np.sin(turn_rad)
+    return points @ np.array([[c, s], [-s, c]])
+
+
+RECTANGLE = np.array([[-0.04, -0.03], [0.04, -0.03], [0.04, 0.03], [-0.04, 0.03]])
+CIRCLE = 0.05 * np.column_stack([np.cos(np.arange(360) * np.pi / 180),
+                                 np.sin(np.arange(360) * np.pi / 180)])  # fmt: skip
+
+
+def test_outline_axes_follow_straight_sides() -> None:
+    """A rectangle runs all along its axes; a right triangle with legs a, b along them
+    (a + b) / (a + b + c) of its length; a circle along no direction."""
+    yaw, clarity = outline_axes(_dense(RECTANGLE, 2.0))
+    assert yaw == pytest.approx(2.0 - np.pi / 2, abs=1e-9) and clarity == pytest.approx(1.0)
+    a_m, b_m = 0.06, 0.1
+    triangle = np.array([[0.0, 0.0], [a_m, 0.0], [0.0, b_m]])
+    yaw, clarity = outline_axes(_dense(triangle, 1.0))
+    assert yaw == pytest.approx(1.0, abs=1e-9)
+    assert clarity == pytest.approx((a_m + b_m) / (a_m + b_m + np.hypot(a_m, b_m)), abs=0.02)
+    assert outline_axes(CIRCLE)[1] < AXES_CLEAR
+
+
+def test_frame_yaws_give_a_chain_one_yaw_along_it() -> None:
+    """Whatever axes the fit gave each link: a chain's links take the axes of the one that
+    shows them, those nearest the direction from the first link to the last; the direction
+    itself where no link shows its axes; a single link keeps the axes nearest its fit's."""
+    turn, chain = 0.3, 0.5
+    at = (0.1 * np.cos(chain), 0.1 * np.sin(chain))
+    rectangle, circle = _dense(RECTANGLE, turn), CIRCLE + np.array(at)
+    fitted = np.array([turn + np.pi / 2, 2.9])
+    np.testing.assert_allclose(frame_yaws(fitted, [rectangle, circle]), [turn, turn])
+    back = frame_yaws(fitted[::-1], [circle, rectangle])
+    np.testing.assert_allclose(np.exp(1j * back), [np.exp(1j * (turn + np.pi))] * 2)
+    np.testing.assert_allclose(frame_yaws(fitted, [CIRCLE, circle]), [chain, chain])
+    single = frame_yaws(np.array([turn + np.pi / 2 + 0.05]), [rectangle])
+    np.testing.assert_allclose(single, [turn + np.pi / 2])

@@ -16,14 +16,14 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, Literal, cast
 
 import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
 from vistac.errors import ConfigError, DataError
-from vistac.objects import polygon_centroid_covariance
+from vistac.objects import polygon_centroid_covariance, to_link_frame
 from vistac.plugins.actions.affordances import link_outline
 from vistac.plugins.actions.executor import CartesianExecutor
 from vistac.plugins.filters.data import relative_poses
@@ -84,6 +84,129 @@ def link_boxes(shape: ShapeEstimate) -> tuple[FloatArray, FloatArray]:
     return np.asarray(shape.initial_poses, dtype=np.float64), sizes
 
 
+LinkFrames = Literal["fitted", "trained"]
+"""The frames the process models see the fitted links in (``ModelFrames``)."""
+AXES_CLEAR = 0.45
+"""A fitted outline shows its link's axes where more than this share of its length runs
+within ``AXES_BAND_RAD`` of one direction or its perpendicular (``outline_axes``): a box's
+about 0.9, a right triangle's legs 0.55-0.6; an ellipse's 0.1-0.11, the tapered
+superellipse of the butter footprint's 0.23, a hexagon's fit (a superellipse) up to 0.31."""
+AXES_BAND_RAD = np.radians(4.0)
+
+
+def outline_axes(outline: FloatArray) -> tuple[float, float]:
+    """(yaw in [0, pi/2) of the direction that most of a closed outline [K, 2] runs along,
+    or across (rad), the share of its length within ``AXES_BAND_RAD`` of it): the straight
+    sides of boxes and of a right triangle's legs, whatever axes the fit gave the link."""
+    edges = np.roll(outline, -1, axis=0) - outline
+    length_m = np.hypot(edges[:, 0], edges[:, 1])
+    quarter = np.pi / 2
+    angle = np.arctan2(edges[:, 1], edges[:, 0]) % quarter
+    # the length within the band about each edge's direction, on the circle of quarter turns
+    gap = np.abs((angle[:, None] - angle[None, :] + quarter / 2) % quarter - quarter / 2)
+    support = (gap <= AXES_BAND_RAD) @ length_m
+    best = int(np.argmax(support))
+    near = gap[best] <= AXES_BAND_RAD
+    offset = (angle[near] - angle[best] + quarter / 2) % quarter - quarter / 2
+    yaw = (angle[best] + np.average(offset, weights=length_m[near])) % quarter
+    return float(yaw), float(support[best] / length_m.sum())
+
+
+def frame_yaws(fitted_rad: FloatArray, outlines: Sequence[FloatArray]) -> FloatArray:
+    """The yaws [L] of the links' model frames: where an outline shows its axes
+    (``outline_axes``), those nearest the fitted yaws [L] (rad); else the fit's. The training's
+    frames of a chain all share the object's yaw, each next link on the +x side: a chain's
+    links all take the axes of the link that shows them best, those nearest the direction
+    from the first outline's mean point to the last's, or that direction itself where no
+    link shows its axes."""
+    quarter = np.pi / 2
+    axes = [outline_axes(outline) for outline in outlines]
+
+    def nearest(axis_rad: float, to_rad: float) -> float:
+        return axis_rad + quarter * round((to_rad - axis_rad) / quarter)
+
+    if len(outlines) == 1:
+        axis_rad, clarity = axes[0]
+        return np.array([nearest(axis_rad, fitted_rad[0]) if clarity > AXES_CLEAR
+                         else fitted_rad[0]])  # fmt: skip
+    along = np.mean(outlines[-1], axis=0) - np.mean(outlines[0], axis=0)
+    chain_rad = float(np.arctan2(along[1], along[0]))
+    axis_rad, clarity = max(axes, key=lambda axis: axis[1])
+    yaw = nearest(axis_rad, chain_rad) if clarity > AXES_CLEAR else chain_rad
+    return np.full(len(outlines), yaw)
+
+
+@dataclass(frozen=True)
+class ModelFrames:
+    """The frames the process models and the belief see the fitted links in (``link_frames``
+    of ``filters.dual``), and each link's footprint in its frame.
+
+    ``fitted``: each fitted superquadric's own frame and half extents (a1, a2), whatever
+    axes the fit gave the link. ``trained``: the frames the models were trained in
+    (:func:`vistac.plugins.filters.data.link_geometry` of the true footprints): each at the
+    area centroid of the link's fitted mid-height outline (``link_outline``), turned along
+    the outline's own straight sides (``frame_yaws``: a chain's links all share one yaw with
+    each next link on the +x side), its half extents the outline's largest |coordinate|
+    about that centroid per axis. For a symmetric footprint the two frames share their
+    origin; a right triangle's trained frame lies a sixth of each leg from the box centre,
+    its half extents a third larger."""
+
+    poses: FloatArray
+    """[L, 3] (x m, y m, theta rad) in the world, where the fit put the links."""
+    half_extents_m: FloatArray
+    """[L, 2]."""
+    origin_m: FloatArray
+    """[L, 2] each frame's origin in its fitted box's frame."""
+    turn_rad: FloatArray
+    """[L] each frame's yaw less its fitted box's."""
+    box_half_extents_m: FloatArray
+    """[L, 2] the fitted boxes' (a1, a2)."""
+    footprint_mean_m: FloatArray
+    """[L, 2] the outline's area centroid in the link's frame (kept inside the half
+    extents)..."""
+    footprint_cov_m2: FloatArray
+    """... and [L, 2, 2] its second area moments about it over its area: the mean and
+    covariance of a CoM uniform over the fitted footprint."""
+
+    @classmethod
+    def of(cls, shape: ShapeEstimate, convention: LinkFrames = "fitted") -> ModelFrames:
+        """The frames of ``convention``, ``fitted`` or ``trained``."""
+        box_poses, box_sizes = link_boxes(shape)
+        outlines = [link_outline(link)[0] for link in shape.links]  # world [K, 2] each
+        centroids = np.array([polygon_centroid_covariance(o)[0] for o in outlines])
+        if convention == "trained":
+            poses = np.column_stack([centroids, frame_yaws(box_poses[:, 2], outlines)])
+        else:
+            poses = box_poses
+        means, extents, covariances = [], [], []
+        for outline, pose, box_m in zip(outlines, poses, box_sizes, strict=True):
+            local = to_link_frame(np.column_stack([outline, np.zeros(len(outline))]), pose)
+            mean, covariance = polygon_centroid_covariance(local[:, :2])
+            extents.append(np.abs(local[:, :2]).max(axis=0) if convention == "trained" else box_m)
+            means.append(np.clip(mean, -extents[-1], extents[-1]))
+            covariances.append(covariance)
+        origins = np.array([
+            to_link_frame(np.array([[*pose[:2], 0.0]]), box)[0, :2]
+            for pose, box in zip(poses, box_poses, strict=True)
+        ])  # fmt: skip
+        return cls(poses, np.array(extents), origins, poses[:, 2] - box_poses[:, 2], box_sizes,
+                   np.array(means), np.array(covariances))  # fmt: skip
+
+    def box_poses(self, poses: FloatArray) -> FloatArray:
+        """The fitted boxes' poses [..., L, 3] for links whose frames stand at ``poses``
+        [..., L, 3]."""
+        theta = poses[..., 2] - self.turn_rad
+        c, s = np.cos(theta), np.sin(theta)
+        x, y = self.origin_m[:, 0], self.origin_m[:, 1]
+        return np.stack([poses[..., 0] - (c * x - s * y), poses[..., 1] - (s * x + c * y),
+                         theta], -1)  # fmt: skip
+
+    def link_at(self, points_m: FloatArray, poses: FloatArray) -> FloatArray:
+        """Index [..., N] of the link whose fitted box is nearest each point [..., N, >=2]
+        (``nearest_link``), the links' frames at ``poses`` [..., L, 3]."""
+        return nearest_link(points_m, self.box_poses(poses), self.box_half_extents_m)
+
+
 def com_discrepancy_var(
     shape: ShapeEstimate, layout: StateLayout, discrepancy_m: tuple[float, float]
 ) -> FloatArray:
@@ -97,22 +220,6 @@ def com_discrepancy_var(
         for axis in "xy":
             var[layout.index(f"com_{axis}_{i}")] = std_m**2
     return var
-
-
-def footprint_com(shape: ShapeEstimate) -> tuple[FloatArray, FloatArray]:
-    """Mean [L, 2] and covariance [L, 2, 2] (m, m², link frames) of a CoM uniform over each
-    fitted link's mid-height outline (``link_outline``), the mean kept inside the box of half
-    extents (a1, a2) that the filter's constraints allow."""
-    poses, half_extents_m = link_boxes(shape)
-    means, covariances = [], []
-    for link, (x_m, y_m, theta_rad), box_m in zip(shape.links, poses, half_extents_m, strict=True):
-        outline, _ = link_outline(link)
-        cos, sin = np.cos(theta_rad), np.sin(theta_rad)
-        local = (outline - [x_m, y_m]) @ np.array([[cos, -sin], [sin, cos]])
-        mean, covariance = polygon_centroid_covariance(local)
-        means.append(np.clip(mean, -box_m, box_m))
-        covariances.append(covariance)
-    return np.array(means), np.array(covariances)
 
 
 def prior_belief(
@@ -392,6 +499,13 @@ class DualFilterComponent(Component):
         between_episodes_std_m: float = Field(
             0.002, ge=0, description="pose std added between interactions (m, and rad / 10)"
         )
+        link_frames: LinkFrames = Field(
+            "fitted", description="the frames the process model and the belief see the "
+            "fitted links in: each superquadric's own (fitted), or those the models were "
+            "trained in, at each footprint's centroid and, for a chain, along it (trained; "
+            "see ModelFrames). Measured: trained is better on articulated objects, worse on "
+            "single triangles and no better overall (docs/results.md)",
+        )
         com_discrepancy_m: tuple[NonNegativeFloat, NonNegativeFloat] = Field(
             (0.0, 0.0), description="[a m, b m]: the reported belief (not the filter's own) "
             "adds a model-discrepancy std of a + b |kappa1| to each link's com_x and com_y, "
@@ -470,6 +584,7 @@ class DualFilterComponent(Component):
         self.belief: Belief | None = None
         self.prior: Belief | None = None
         self.shape: ShapeEstimate | None = None
+        self.frames: ModelFrames | None = None
         self._reported_var: FloatArray = np.zeros(0)
         self._observed_shape: ShapeEstimate | None = None
         self.history: list[dict[str, Any]] = []
@@ -480,7 +595,8 @@ class DualFilterComponent(Component):
         if scene.shape is None:
             raise DataError("filters.dual: no shape estimate; run `look` with a shape estimator")
         self.shape = self._observed_shape = scene.shape
-        poses, _ = link_boxes(scene.shape)
+        self.frames = ModelFrames.of(scene.shape, self.config.link_frames)
+        poses = self.frames.poses
         self.layout = StateLayout(len(poses))
         self._reported_var = com_discrepancy_var(
             scene.shape, self.layout, self.config.com_discrepancy_m
@@ -501,7 +617,9 @@ class DualFilterComponent(Component):
                 self.layout.size,
             )  # fmt: skip
         pose_twist = np.column_stack([poses, np.zeros_like(poses)])
-        com = footprint_com(scene.shape) if self.config.prior.com_in_shape else None
+        com = None
+        if self.config.prior.com_in_shape:
+            com = (self.frames.footprint_mean_m, self.frames.footprint_cov_m2)
         self.belief = prior_belief(pose_twist, self.config.prior, self.layout, com)
         if self.known is not None and self.config.prior_from is not None:
             self.belief = known_parameters(
@@ -551,7 +669,7 @@ class DualFilterComponent(Component):
 
     def _push_update(self, start: Belief, inputs: list[ProcessInput], dt_s: float) -> None:
         """The push-level evidence of one interaction (``push_evidence``)."""
-        assert self.belief is not None and self.layout is not None and self.shape is not None
+        assert self.belief is not None and self.layout is not None and self.frames is not None
         layout, bound = self.layout, (self.config.max_link_speed_mps,
                                       self.config.max_link_rate_radps)
 
@@ -562,7 +680,7 @@ class DualFilterComponent(Component):
         def rollout(states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             return end_poses(predict, layout, states, inputs, dt_s, bound)
 
-        _, sizes = link_boxes(self.shape)
+        sizes = self.frames.half_extents_m
         self.belief = push_update(
             self.belief, start, layout, self.config.push_evidence, rollout,
             torch.as_tensor(sizes, dtype=DTYPE), self.generator,
@@ -660,7 +778,7 @@ class DualFilterComponent(Component):
         """The gripper's straight motion during each action, with links [B, L, 3] at rest: a
         push's pad starts at its contact point, or with ``standoff`` the executor's
         ``standoff_m`` before it."""
-        assert self.shape is not None
+        assert self.frames is not None
         batch = len(actions)
         points = np.array([action_point(action) for action in actions]).reshape(batch, 2)
         headings = np.array([[np.cos(a.pd_rad), np.sin(a.pd_rad)] for a in actions])
@@ -670,8 +788,8 @@ class DualFilterComponent(Component):
         if standoff:
             offset_m += float(getattr(executor_config, "standoff_m", defaults.standoff_m))
         is_pull = np.array([isinstance(action, Pull) for action in actions])
-        _, sizes = link_boxes(self.shape)
-        links = nearest_link(points[:, None], poses, sizes)[:, 0]
+        links = self.frames.link_at(points[:, None], poses)[:, 0]
+        sizes = self.frames.half_extents_m
         return _ActionMotion(
             start_xy=points - np.where(is_pull, 0.0, offset_m)[:, None] * headings,
             yaw_rad=np.array(
@@ -697,7 +815,7 @@ class DualFilterComponent(Component):
         if shape is self._observed_shape:
             return self._public()  # a measurement counts once
         self._observed_shape = shape
-        fitted = np.asarray(shape.initial_poses, dtype=np.float64)[:, :2]
+        fitted = ModelFrames.of(shape, self.config.link_frames).poses[:, :2]
         believed = self.layout.link_pose(self.belief.mean).numpy()[:, :2]
         if len(fitted) != len(believed):
             log.warning("look: %d fitted link(s) for %d in the belief; belief not corrected",
@@ -741,12 +859,12 @@ class DualFilterComponent(Component):
 
     def _filter(self, first: StepObservation) -> DualFilter:
         assert self.shape is not None and self.layout is not None and first.depth is not None
-        poses, sizes = link_boxes(self.shape)
+        assert self.frames is not None
         points = np.asarray(self.shape.cloud.points_m)
         size = self.config.depth_size_px
         frame = first.depth
         projector = DepthProjector(
-            points, nearest_link(points, poses, sizes), poses,
+            points, self.frames.link_at(points, self.frames.poses), self.frames.poses,
             frame.intrinsics, frame.world_from_camera,
             width_px=size, height_px=size, splat_px=self.config.splat_px,
         )  # fmt: skip
@@ -770,10 +888,11 @@ class DualFilterComponent(Component):
     def _inputs(self, episode: Episode) -> Any:
         """A function StepObservation -> ProcessInput for this episode's action."""
         assert self.shape is not None and self.belief is not None and self.layout is not None
-        _, sizes = link_boxes(self.shape)
+        assert self.frames is not None
+        sizes = self.frames.half_extents_m
         poses = self.layout.link_pose(self.belief.mean).numpy()[:, :3]
         point = action_point(episode.action)[None, :2]
-        link = int(nearest_link(np.column_stack([point, [[0.0]]]), poses, sizes)[0])
+        link = int(self.frames.link_at(np.column_stack([point, [[0.0]]]), poses)[0])
         fixed = {
             "pd_rad": torch.tensor(episode.action.pd_rad, dtype=DTYPE),
             "is_pull": torch.tensor(float(episode.action.kind == "pull"), dtype=DTYPE),
