@@ -172,6 +172,11 @@ class EMSResult:
         """[14]."""
         return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
 
+    @property
+    def planar_pose(self) -> FloatArray:
+        """(x m, y m, yaw rad) of the superquadric's frame: [3]."""
+        return self.params[[_X, _Y, _YAW]]
+
 
 @dataclass(frozen=True)
 class _Rows:
@@ -1438,7 +1443,7 @@ class EMSEstimator(Component):
         )
         return ShapeEstimate(
             links=tuple(link.superquadric for link in links),
-            initial_poses=np.array([link.params[[_X, _Y, _YAW]] for link in links]),
+            initial_poses=np.array([link.planar_pose for link in links]),
             uncertainty=np.array([link.std for link in links]),
             cloud=PointCloud(points[inlier]),
             covariance=np.array([link.covariance for link in links]),
