@@ -337,7 +337,7 @@ def cmd_information(args: argparse.Namespace) -> int:
     runs = run_folders(args.folder, args.variant)
     by_type = collect_information(runs)
     reports = {} if model is None else model_reports(by_type, model, error)
-    own = {kind: report.error for kind, report in reports.items()}
+    own = {kind: report.repeating_error for kind, report in reports.items()}
     tables = information_tables(by_type, error, args.scale, own)
     lines = information_markdown(tables, error) + (model_markdown(reports) if reports else [])
     report: dict[str, Any] = {

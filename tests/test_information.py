@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +16,13 @@ from vistac.plugins.filters.data import central_twist, load_trajectories
 from vistac.plugins.filters.information import (
     DEFAULT_ERROR,
     WINDOW_STEPS,
+    ModelError,
+    ModelReport,
     ObjectInformation,
     PushReplay,
     RecordedPush,
     measured_error,
+    noise_covariance,
     parameter_names,
     posterior_covariance,
     prior_covariance,
@@ -116,6 +120,8 @@ def test_posterior_covariance_by_hand() -> None:
     # Two looks at the first parameter, each of variance 8: information 1/4 + 1/8 + 1/8.
     cov = posterior_covariance(jacobian, prior, noise)
     np.testing.assert_allclose(cov, np.diag([2.0, 1.0]), atol=1e-12)
+    as_matrix = posterior_covariance(jacobian, prior, np.diag(noise**2))
+    np.testing.assert_allclose(as_matrix, cov, atol=1e-12)
     far = posterior_covariance(jacobian, prior, np.array([1e9, 1e9]))
     np.testing.assert_allclose(far, prior, rtol=1e-9)
 
@@ -138,12 +144,36 @@ def test_more_pushes_show_more() -> None:
     replay = PushReplay(spec)
     one = push_jacobian(replay, straight_push(spec, 2.0))
     assert len(one) == 5  # 30 steps: one window; the last 4 steps are too few for another
-    info = ObjectInformation(spec, [Path("0000")], [one])
-    twice = ObjectInformation(spec, [Path("0000"), Path("0001")], [one, one])
+    info = ObjectInformation(spec, [Path("0000")], [one], [2.0])
+    twice = ObjectInformation(spec, [Path("0000"), Path("0001")], [one, one], [2.0, 2.0])
     single, double = info.squared_errors(DEFAULT_ERROR), twice.squared_errors(DEFAULT_ERROR)
     prior = squared_errors(replay.names, prior_covariance(spec))
     for row in prior:
         assert double[row] < single[row] < prior[row]
+    # An error that repeats whole is the same again in the same push: it shows nothing more
+    repeating = replace(DEFAULT_ERROR, repeated=1.0)
+    again = twice.squared_errors(repeating)
+    for row, value in info.squared_errors(repeating).items():
+        assert again[row] == pytest.approx(value, rel=1e-6)
+    half = twice.squared_errors(replace(DEFAULT_ERROR, repeated=0.5))
+    for row in prior:
+        assert double[row] < half[row] < single[row]
+
+
+def test_noise_covariance_of_repeating_errors() -> None:
+    """Each window keeps its variance; a repeated share s correlates two windows by s, the
+    positions and forces turned by the pushes' directions (a half turn: -s), the angles not."""
+    error = ModelError(0.002, 0.05, 0.5, repeated=0.3)
+    cov = noise_covariance(error, 1, [0.4, 0.4 + math.pi])
+    var = error.per_window(1) ** 2
+    np.testing.assert_allclose(np.diag(cov), np.tile(var, 2), rtol=1e-12)
+    np.testing.assert_allclose(np.diag(cov[:5, 5:]), 0.3 * var * [-1, -1, 1, -1, -1], rtol=1e-9)
+    np.testing.assert_allclose(cov, cov.T, atol=1e-15)
+    independent = noise_covariance(replace(error, repeated=0.0), 1, [0.4, 1.0])
+    np.testing.assert_allclose(independent, np.diag(np.tile(var, 2)), atol=1e-15)
+    report = ModelReport({}, error, repeated_share=0.4, independent_share=0.2)
+    assert report.repeating_error.repeated == pytest.approx(0.25)
+    assert ModelReport({}, error, 0.1, 0.2).repeating_error.repeated == 0.0
 
 
 def test_measured_error_pools_links_and_axes() -> None:
@@ -261,7 +291,7 @@ def test_information_of_a_recorded_run_with_the_skills_model(tmp_path: Path) -> 
     assert code == 0
     report = json.loads(out.read_text(encoding="utf-8"))
     table = report["tables"]["homogeneous"]
-    assert list(table) == ["x 1", "x 0.5", "own"] and table["x 1"]["runs"] == 1
+    assert list(table)[:3] == ["x 1", "x 0.5", "own"] and table["x 1"]["runs"] == 1
     prior = squared_errors(parameter_names(spec), prior_covariance(spec))
     for row in ("m_0", "f_0", "CoM_0"):
         assert table["x 0.5"][row] < table["x 1"][row]

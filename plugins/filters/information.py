@@ -15,7 +15,11 @@ squared model error on the diagonal. Its diagonal, over the runs and normalised 
 ranges as ``vistac eval`` normalises, is the expected NRMSE of that model: what the pushes show
 at that model error. It is a local figure, at the true parameters: a hinge whose friction holds
 it still through a push shows only that its friction is above what the push asked of it, and
-counts as showing nothing.
+counts as showing nothing. Where a model's errors repeat from window to window (a share of
+each is the same error, in each push's frame, on every push of an object:
+``ModelError.repeated``), ``R`` holds that share across windows (:func:`noise_covariance`):
+a repeated push then shows nothing new, while pushes in other directions can tell the
+repeated error apart from the parameters.
 """
 
 from __future__ import annotations
@@ -91,6 +95,9 @@ class ModelError:
     position_m: float = 0.007
     angle_rad: float = math.radians(2.5)
     force_n: float = 0.8
+    repeated: float = 0.0
+    """The share of each window's error that is one error of the object's, the same in
+    every push's frame (:func:`noise_covariance`); 0: independent from window to window."""
 
     def per_window(self, n_links: int) -> FloatArray:
         """Standard deviations [3 L + 2] in the order of a window's outcome."""
@@ -99,7 +106,8 @@ class ModelError:
 
     def scaled(self, factor: float) -> ModelError:
         return ModelError(
-            self.position_m * factor, self.angle_rad * factor, self.force_n * factor
+            self.position_m * factor, self.angle_rad * factor, self.force_n * factor,
+            self.repeated,
         )
 
 
@@ -118,6 +126,8 @@ class RecordedPush:
     time_s: FloatArray
     arm_pose: FloatArray
     object_pose: FloatArray
+    pd_rad: float = 0.0
+    """The push's direction in the world."""
 
     @classmethod
     def read(cls, folder: Path) -> RecordedPush | None:
@@ -133,7 +143,8 @@ class RecordedPush:
             if "object_pose" not in data.files:
                 return None
             push = cls(ObjectSpec.model_validate(truth["object"]), data["time_s"],
-                       data["arm_pose"], data["object_pose"])  # fmt: skip
+                       data["arm_pose"], data["object_pose"],
+                       float(meta["action"].get("pd_rad", 0.0)))  # fmt: skip
         return push if len(push.time_s) > MIN_WINDOW_STEPS else None
 
 
@@ -317,12 +328,40 @@ def prior_covariance(spec: ObjectSpec) -> FloatArray:
 
 
 def posterior_covariance(
-    jacobian: FloatArray, prior: FloatArray, noise_std: FloatArray
+    jacobian: FloatArray, prior: FloatArray, noise: FloatArray
 ) -> FloatArray:
-    """``(P0^-1 + J^T R^-1 J)^-1``: jacobian [N, P], prior [P, P], noise_std [N] (R its
-    squares on the diagonal). Returns [P, P]."""
-    weighted = jacobian / noise_std[:, None] ** 2
+    """``(P0^-1 + J^T R^-1 J)^-1``: jacobian [N, P], prior [P, P], noise the standard
+    deviations [N] (R their squares on the diagonal) or R itself [N, N], which may be
+    singular (an error repeated whole), as ``P0 - P0 J^T (J P0 J^T + R)^+ J P0``. Returns
+    [P, P]."""
+    if noise.ndim == 2:
+        spread = jacobian @ prior  # [N, P]
+        innovation = np.linalg.pinv(spread @ jacobian.T + noise, hermitian=True)
+        return np.asarray(prior - spread.T @ innovation @ spread)
+    weighted = jacobian / noise[:, None] ** 2
     return np.asarray(np.linalg.inv(np.linalg.inv(prior) + jacobian.T @ weighted))
+
+
+def noise_covariance(
+    error: ModelError, n_links: int, windows_rad: Sequence[float]
+) -> FloatArray:
+    """The covariance R [W (3 L + 2), W (3 L + 2)] of a model's errors over one object's W
+    windows, each pushed in direction ``windows_rad`` [W]: a share ``error.repeated`` of each
+    window's error is one error of the object's, the same in every push's frame (each link's
+    position and the force turned by the push's direction; the angles as they are); the rest
+    is independent from window to window. With ``repeated`` 0, ``diag(per_window^2)``."""
+    std = error.per_window(n_links)
+    size = len(std)
+    turns = np.zeros((len(windows_rad), size, size))
+    for w, angle in enumerate(windows_rad):
+        cos, sin = math.cos(angle), math.sin(angle)
+        turns[w] = np.eye(size)
+        for first in [3 * link for link in range(n_links)] + [3 * n_links]:
+            turns[w, first : first + 2, first : first + 2] = [[cos, -sin], [sin, cos]]
+    stacked = turns.reshape(-1, size)  # push frame -> world, per window: [W D, D]
+    shared = stacked @ np.diag(std**2) @ stacked.T
+    own = np.diag(np.tile(std**2, len(windows_rad)))
+    return np.asarray((1.0 - error.repeated) * own + error.repeated * shared)
 
 
 def squared_errors(names: Sequence[str], cov: FloatArray) -> dict[str, float]:
@@ -343,6 +382,8 @@ class ObjectInformation:
     spec: ObjectSpec
     folders: list[Path]
     jacobians: list[FloatArray]
+    directions_rad: list[float]
+    """Each push's direction."""
 
     @property
     def jacobian(self) -> FloatArray:
@@ -350,10 +391,15 @@ class ObjectInformation:
         return np.concatenate(self.jacobians)
 
     def squared_errors(self, error: ModelError) -> dict[str, float]:
-        jacobian = self.jacobian
-        windows = len(jacobian) // (3 * len(self.spec.links) + 2)
-        noise = np.tile(error.per_window(len(self.spec.links)), windows)
-        cov = posterior_covariance(jacobian, prior_covariance(self.spec), noise)
+        n_links = len(self.spec.links)
+        windows = [angle for angle, jacobian in zip(self.directions_rad, self.jacobians,
+                                                    strict=True)
+                   for _ in range(len(jacobian) // (3 * n_links + 2))]  # fmt: skip
+        if error.repeated:
+            noise = noise_covariance(error, n_links, windows)
+        else:
+            noise = np.tile(error.per_window(n_links), len(windows))
+        cov = posterior_covariance(self.jacobian, prior_covariance(self.spec), noise)
         return squared_errors(parameter_names(self.spec), cov)
 
 
@@ -366,7 +412,8 @@ def run_information(run_dir: Path) -> ObjectInformation | None:
         return None
     replay = PushReplay(pushes[0][1].spec)
     return ObjectInformation(pushes[0][1].spec, [folder for folder, _ in pushes],
-                             [push_jacobian(replay, push) for _, push in pushes])  # fmt: skip
+                             [push_jacobian(replay, push) for _, push in pushes],
+                             [push.pd_rad for _, push in pushes])  # fmt: skip
 
 
 def expected_nrmse_rows(
@@ -421,13 +468,17 @@ def information_tables(
     own: dict[str, ModelError] | None = None,
 ) -> dict[str, dict[str, dict[str, float]]]:
     """{object type: {"x SCALE": {row: expected NRMSE, "overall", "runs"}}} at ``error``
-    times each scale, and at a model's own error on that type (``own``, row "own")."""
+    times each scale, and at a model's own error on that type (``own``): row "own" with its
+    errors independent from window to window, and where they repeat (``repeated`` above
+    0) row "own, repeating" as they do."""
     ranges = parameter_ranges()
     tables: dict[str, dict[str, dict[str, float]]] = {}
     for kind, infos in by_type.items():
         errors = {f"x {scale:g}": error.scaled(scale) for scale in scales}
         if own is not None and kind in own:
-            errors["own"] = own[kind]
+            errors["own"] = replace(own[kind], repeated=0.0)
+            if own[kind].repeated > 0:
+                errors["own, repeating"] = own[kind]
         runs = {"runs": float(len(infos))}
         tables[kind] = {label: expected_nrmse_rows(infos, value, ranges) | runs
                         for label, value in errors.items()}  # fmt: skip
@@ -464,6 +515,13 @@ class ModelReport:
     """:func:`repeated_share` of the errors, the mean over the objects."""
     independent_share: float
     """What it would be for errors independent from window to window: the mean of 1 / W."""
+
+    @property
+    def repeating_error(self) -> ModelError:
+        """:attr:`error` with the share of it that repeats beyond chance: ``repeated`` =
+        (repeated share - independent share) / (1 - independent share), at least 0."""
+        excess = (self.repeated_share - self.independent_share) / (1 - self.independent_share)
+        return replace(self.error, repeated=max(0.0, excess))
 
 
 def model_reports(
@@ -534,8 +592,8 @@ def model_markdown(reports: dict[str, ModelReport]) -> list[str]:
                   f"{math.degrees(own.angle_rad):.2f} deg, {own.force_n:.2f} N. The mean of an "
                   f"object's window errors (each push's frame) carries "
                   f"{report.repeated_share:.0%} of their squared size "
-                  f"({report.independent_share:.0%} if they were independent: the first "
-                  "table assumes that).", "",
+                  f"({report.independent_share:.0%} if they were independent: the row "
+                  "\"own\" assumes that, \"own, repeating\" takes them as they repeat).", "",
                   "| | " + " | ".join(rows) + " |", "|---|" + "---:|" * len(rows)]  # fmt: skip
         for key, label in (("cosine", "cosine"), ("length_ratio", "length ratio")):
             lines.append(f"| {label} | " + " | ".join(f"{v[key]:.2f}" for v in rows.values())
