@@ -593,7 +593,8 @@ def model_markdown(reports: dict[str, ModelReport]) -> list[str]:
                   f"object's window errors (each push's frame) carries "
                   f"{report.repeated_share:.0%} of their squared size "
                   f"({report.independent_share:.0%} if they were independent: the row "
-                  "\"own\" assumes that, \"own, repeating\" takes them as they repeat).", "",
+                  "\"own\" assumes that; where they repeat more, \"own, repeating\" takes "
+                  "them as they do).", "",
                   "| | " + " | ".join(rows) + " |", "|---|" + "---:|" * len(rows)]  # fmt: skip
         for key, label in (("cosine", "cosine"), ("length_ratio", "length ratio")):
             lines.append(f"| {label} | " + " | ".join(f"{v[key]:.2f}" for v in rows.values())
