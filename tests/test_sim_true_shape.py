@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 from conftest import SKILLS
-from vistac.errors import ConfigError
+from vistac.errors import ConfigError, DataError
 from vistac.objects import link_frames
 from vistac.pluginmanager import Plugins
 from vistac.plugins.filters.component import ModelFrames
@@ -72,5 +72,5 @@ def test_true_shape_needs_observed_object_points(plugins: Plugins, tmp_path: Pat
     """The filter's depth observation needs what the camera saw: a table-only cloud is an
     error naming the camera."""
     shape, _ = _true_shape(plugins, tmp_path, SKILLS / "objects" / "rect1.yaml")
-    with pytest.raises(Exception, match="camera"):
+    with pytest.raises(DataError, match="camera"):
         shape.fit(PointCloud(np.array([[0.0, 0.45, 0.0]])))
