@@ -395,7 +395,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 1 if any(run["status"] == "failed" for run in skipped) else 0
 
 
-DEFAULT_MODELS = "gnn,ff,analytical"
+DEFAULT_MODELS = "gnn,ff,analytical,physics"
 DEFAULT_VARIANTS = "a-gnn,u-gnn,r-gnn,a-ff,a-analytical,gnn-fixed"
 DEFAULT_TRIALS = 10
 DEFAULT_EXPLORERS = "dhd,rrt"
@@ -600,8 +600,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--variants", default=None,
         help="comma-separated model x action selector columns: a-gnn (info gain), u-gnn "
-        "(uniform), r-gnn (random), a-ff, a-analytical, gnn-fixed (no parameter estimation); "
-        "default all",
+        "(uniform), r-gnn (random), a-ff, a-analytical, gnn-fixed (no parameter estimation), "
+        "a-physics (the simulator as the process model; with --paired only); default all but "
+        "a-physics",
     )  # fmt: skip
     evaluate.add_argument(
         "--max-objects", type=int, default=None, help="evaluate at most N objects"

@@ -402,7 +402,9 @@ def test_eval_names_a_bad_prior(tmp_path: Path, capsys: pytest.CaptureFixture[st
         (["--models", "gnn,lstm"], "--models: unknown model(s) 'lstm'"),
         (["--objects", "nowhere/missing.yaml"], "neither a split"),
         (["--variants", "a-gnn,b-gnn"], "--variants: unknown variant(s) 'b-gnn'; choose from "
-         "a-gnn, u-gnn, r-gnn, a-ff, a-analytical, gnn-fixed"),
+         "a-gnn, u-gnn, r-gnn, a-ff, a-analytical, gnn-fixed, a-physics"),
+        (["--variants", "a-physics"], "a-physics simulates every sigma point and only replays "
+         "another variant's interactions: add --paired and a variant before it"),
         (["--variants", "a-ff", "--models", "gnn"], "no variant left to evaluate"),
         (["--variants", ","], "--variants: unknown variant(s) (none)"),
         (["--max-objects", "0"], "--max-objects: 0 is not a count; give 1 or more"),
@@ -413,9 +415,9 @@ def test_eval_names_a_bad_prior(tmp_path: Path, capsys: pytest.CaptureFixture[st
          "evaluation does not use --trials (only for touch and goal-push skills), --explorers "
          "(only for touch skills); leave them out"),
     ],
-    ids=["unknown-model", "missing-object", "unknown-variant", "no-variant-left", "empty",
-         "no-objects", "objects-negative", "no-interactions", "interactions-negative",
-         "touch-options"],
+    ids=["unknown-model", "missing-object", "unknown-variant", "physics-unpaired",
+         "no-variant-left", "empty", "no-objects", "objects-negative", "no-interactions",
+         "interactions-negative", "touch-options"],
 )  # fmt: skip
 def test_eval_bad_input_is_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str
@@ -772,6 +774,27 @@ def test_paired_eval_filters_the_first_variants_interactions(tmp_path: Path) -> 
     stamp = (runs / "a-analytical/eval_args.json").stat().st_mtime_ns
     assert main(args) == 0
     assert (runs / "a-analytical/eval_args.json").stat().st_mtime_ns == stamp
+
+
+def test_the_simulator_as_process_model_filters_a_gnn_pushes(tmp_path: Path) -> None:
+    """--variants a-gnn,a-physics --paired: A-Physics (``sim.physics``) filters A-GNN's
+    recorded push; with the world's own motion its belief tracks the object as closely."""
+    out = tmp_path / "eval"
+    args = [
+        "-q", "eval", str(ROOT / "skills/explore_push.yaml"), "--out", str(out),
+        "--objects", str(ROOT / "skills/objects/rect2.yaml"), "--paired",
+        "--variants", "a-gnn,a-physics", "--max-interactions", "1", *FAST,
+    ]  # fmt: skip
+    assert main(args) == 0
+    report = json.loads((out / "eval.json").read_text(encoding="utf-8"))
+    records = {r["variant"]: r for r in report["runs"]}
+    physics = records["A-Physics"]
+    assert physics["replay_of"] == str(out / "runs/rect2/a-gnn")
+    run = json.loads((out / "runs/rect2/a-physics/run.json").read_text())
+    assert run["config"]["components"]["model"] == {"plugin": "sim.physics"}
+    tracking = report["tracking"]["homogeneous"]
+    assert tracking["A-Physics"]["position_m"] < max(0.003, 1.5 * tracking["A-GNN"]["position_m"])
+    assert "A-Physics" in report["tables"]["homogeneous"]["push"]
 
 
 def test_a_replay_is_reused_only_for_the_same_finished_lead_run(

@@ -18,6 +18,8 @@ import torch
 from torch import Tensor
 from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput, StateLayout
 
+INTERACTIONS = ("push", "pull")
+"""What a process model predicts unless its ``interactions`` says less."""
 BATCH = 2
 POINTS = 5
 DT_S = 1.0 / 15.0
@@ -64,16 +66,21 @@ def reference_input(n_links: int, link: int, is_pull: float) -> tuple[Tensor, Pr
 
 def check_process_model(model: Any) -> None:
     """Assert the promises above for every link count the model supports (1 and 2 for a
-    model of any count, ``n_links`` = None; each of a tuple), each acted link, push and pull."""
+    model of any count, ``n_links`` = None; each of a tuple), each acted link, and each
+    interaction it predicts (``interactions``, default push and pull)."""
     n_links = getattr(model, "n_links", "missing")
     counts = n_links if isinstance(n_links, tuple) else (1, 2) if n_links is None else (n_links,)
     assert all(isinstance(n, int) and n >= 1 for n in counts) and counts, (
         f"n_links must be None (any count), a positive int or a tuple of them, got {n_links!r}"
     )
+    interactions = getattr(model, "interactions", INTERACTIONS)
+    assert interactions and set(interactions) <= set(INTERACTIONS), (
+        f"interactions must name some of {INTERACTIONS}, got {interactions!r}"
+    )
     for count in counts:
         for link in range(count):
-            for is_pull in (0.0, 1.0):
-                _check_case(model, count, link, is_pull)
+            for kind in interactions:
+                _check_case(model, count, link, float(kind == "pull"))
 
 
 def _check_case(model: Any, n_links: int, link: int, is_pull: float) -> None:

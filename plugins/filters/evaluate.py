@@ -70,7 +70,7 @@ from vistac.types import GaussianBelief
 
 log = logging.getLogger(__name__)
 
-MODELS: tuple[str, ...] = ("gnn", "ff", "analytical")
+MODELS: tuple[str, ...] = ("gnn", "ff", "analytical", "physics")
 INFO_GAIN_HORIZON_S = 2.5
 """Look-ahead of ``actions.info_gain`` (paper 1, IV-B2; skills/explore_active.yaml)."""
 
@@ -95,8 +95,13 @@ VARIANTS: tuple[Variant, ...] = (
     Variant("a-ff", "A-FF", "ff", "info_gain"),
     Variant("a-analytical", "A-Analytical", "analytical", "info_gain"),
     Variant("gnn-fixed", "GNN-fixed", "gnn", "random", estimate_parameters=False),
+    Variant("a-physics", "A-Physics", "physics", "info_gain"),
 )
-"""Every variant ``vistac eval`` knows, in table order."""
+"""Every variant ``vistac eval`` knows, in table order. ``a-physics`` (``sim.physics``: the
+simulator as the process model) only replays another variant's runs (``--paired``): a
+look-ahead that simulates every sigma point would take hours a run."""
+REPLAY_ONLY_MODELS: tuple[str, ...] = ("physics",)
+"""Models ``vistac eval`` runs only as replays of another variant's interactions."""
 FAMILIES: tuple[str, ...] = ("m", "f", "CoM", "f_j")
 """Parameter families of the tables: mass, table friction, CoM, joint friction."""
 SPLITS: tuple[str, ...] = ("train", "val", "test")
@@ -688,8 +693,9 @@ def model_override(
     """The ``components.model=...`` override of ``model``, or (None, why not); ``learned``
     options (:func:`learned_model_options`) go to the GNN and FF models. The FF gets every
     link count's checkpoint in ``folder``: the fitted object's link count picks the net."""
-    if model == "analytical":
-        return "components.model=" + json.dumps({"plugin": "filters.analytical"}), ""
+    if model in ("analytical", "physics"):
+        plugin = "sim.physics" if model == "physics" else "filters.analytical"
+        return "components.model=" + json.dumps({"plugin": plugin}), ""
     if model == "gnn":
         path = folder / f"gnn_{kind}.pt"
         if not path.is_file():
@@ -1375,6 +1381,12 @@ def check_plans(plans: Sequence[RunPlan], skill: Path) -> None:
     registry = load_plugins().registry
     checked: set[str] = set()
     for plan in plans:
+        if plan.model in REPLAY_ONLY_MODELS and not plan.skipped and plan.lead is None:
+            raise ConfigError(
+                f"{plan.variant.key} simulates every sigma point and only replays another "
+                "variant's interactions: add --paired and a variant before it (e.g. "
+                f"--variants a-gnn,{plan.variant.key} --paired)"
+            )
         if plan.skipped or plan.variant.key in checked:
             continue
         checked.add(plan.variant.key)

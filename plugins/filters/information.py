@@ -58,9 +58,7 @@ from vistac.plugins.filters.data import (
 )
 from vistac.plugins.filters.evaluate import family_of, parameter_ranges
 from vistac.plugins.filters.state import DTYPE, StateLayout
-from vistac.plugins.hardware.sim.mjcf import GripperGeometry, build_mjcf
-from vistac.plugins.hardware.sim.tactile import pad_forces
-from vistac.plugins.hardware.sim.world import SimIndex, planar_poses
+from vistac.plugins.hardware.sim.object_sim import ObjectSim
 from vistac.skill import load_skill
 from vistac.testing import build_components
 from vistac.types import FloatArray
@@ -71,11 +69,6 @@ WINDOW_STEPS = 25
 """Control steps per window: the training's rollout length (``rollout_steps``)."""
 MIN_WINDOW_STEPS = 10
 """A push's last, shorter window is kept when it has at least this many steps."""
-TIMESTEP_S = 0.002
-"""The simulator's step (``sim.world``'s default)."""
-GRIPPER = GripperGeometry(0.15)
-"""``sim.world``'s default gripper; a push's fingers are closed, so the opening does not
-matter."""
 FINITE_STEP = {"m": 0.2, "f": 0.08, "com_x": 0.012, "com_y": 0.012, "f_j": 0.12}
 """Half the central-difference step per parameter family (kg, -, m, m, N m), a seventh to a
 fifth of each range: the simulator's contacts make the change of a push uneven at smaller
@@ -161,81 +154,29 @@ def parameter_names(spec: ObjectSpec) -> tuple[str, ...]:
     return tuple(names + (["f_j_0"] if spec.joint is not None else []))
 
 
-class PushReplay:
-    """The simulated world of one object, whose parameters can be set between replays."""
+class PushReplay(ObjectSim):
+    """The simulated world of one object, replaying recorded pushes with the parameters set
+    between replays (:meth:`ObjectSim.set_parameters`, in :attr:`names` order)."""
 
     def __init__(self, spec: ObjectSpec) -> None:
-        xml = build_mjcf(spec, GRIPPER, TIMESTEP_S, spec.table_tilt_rad)
-        self.model = mujoco.MjModel.from_xml_string(xml)
-        self.data = mujoco.MjData(self.model)
-        self.index = SimIndex.of(self.model, len(spec.links))
+        super().__init__(spec)
         self.names = parameter_names(spec)
         self.truth = np.array([spec.parameters()[name] for name in self.names])
-        model = self.model
-        self._geoms = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"link{i}_geom")
-                       for i in range(len(spec.links))]  # fmt: skip
-        self._free = model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT,
-                                                         "object")]  # fmt: skip
-        hinge = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "hinge")
-        self._hinge = None if hinge < 0 else (model.jnt_qposadr[hinge], model.jnt_dofadr[hinge])
-        bodies = self.index.link_bodies
-        self._inertia_per_kg = model.body_inertia[bodies] / model.body_mass[bodies, None]
         self._state = mujoco.mjtState.mjSTATE_INTEGRATION
-        servos = self.index.arm_actuators  # integrated-velocity servos: gain kp, bias -kv
-        self._servo_act = model.actuator_actadr[servos]
-        self._servo_kp = model.actuator_gainprm[servos, 0]
-        self._servo_kv = -model.actuator_biasprm[servos, 2]
-
-    def set_parameters(self, values: FloatArray) -> None:
-        """Set m (kg, the inertia scaled with it), f, com (m, link frame) per link and the
-        hinge's friction (N m): ``values`` [P] in :attr:`names` order."""
-        model = self.model
-        for i, body in enumerate(self.index.link_bodies):
-            mass_kg, friction, com_x, com_y = values[4 * i : 4 * i + 4]
-            model.body_mass[body] = mass_kg
-            model.body_inertia[body] = self._inertia_per_kg[i] * mass_kg
-            model.body_ipos[body, :2] = (com_x, com_y)
-            model.geom_friction[self._geoms[i], 0] = friction
-        if self._hinge is not None:
-            model.dof_frictionloss[self._hinge[1]] = values[-1]
-        mujoco.mj_setConst(model, self.data)
 
     def start(self, push: RecordedPush) -> None:
         """The world at the push's first recorded step: links at rest at their poses, the
         gripper at its pose with the fingers closed."""
-        model, data, index = self.model, self.data, self.index
-        mujoco.mj_resetData(model, data)
-        x, y, theta = push.object_pose[0, 0]
-        data.qpos[self._free : self._free + 7] = [x, y, 0.0, math.cos(theta / 2), 0.0, 0.0,
-                                                  math.sin(theta / 2)]  # fmt: skip
-        if self._hinge is not None:
-            data.qpos[self._hinge[0]] = push.object_pose[0, 1, 2] - theta
-        data.qpos[index.arm_qpos] = push.arm_pose[0]
-        data.act[model.actuator_actadr[index.arm_actuators]] = push.arm_pose[0]
-        data.qpos[index.finger_qpos] = 0.0
-        data.ctrl[index.finger_actuators] = 0.0
-        mujoco.mj_forward(model, data)
-
-    def link_poses(self) -> FloatArray:
-        """[L, 3] = (x_m, y_m, theta_rad) of the link frames."""
-        return planar_poses(self.data, self.index.link_bodies)
-
-    def finger_force_n(self) -> FloatArray:
-        """Total force [2] (world x, y, N) of the object on both pads, as the tactile sum."""
-        return pad_forces(self.model, self.data, self.index.pad_geoms)[:, :2].sum(axis=0)
+        theta = push.object_pose[0, 0, 2]
+        hinge = push.object_pose[0, 1, 2] - theta if self.hinge is not None else 0.0
+        self.place(push.object_pose[0, 0], hinge, push.arm_pose[0])
 
     def advance(self, push: RecordedPush, step: int) -> None:
-        """Control step ``step`` -> ``step + 1``: the gripper at the recorded velocity, its
-        servo's target put where it leads the recorded pose by the servo's lag (its speed
-        and the finger force over its stiffness), so that no lag adds up along the push."""
+        """Control step ``step`` -> ``step + 1``, the gripper at the recorded velocity
+        (:meth:`ObjectSim.drive`)."""
         dt_s = float(push.time_s[step + 1] - push.time_s[step])
         velocity = (push.arm_pose[step + 1] - push.arm_pose[step]) / dt_s
-        load = np.zeros(4)
-        load[:2] = self.finger_force_n()
-        target = push.arm_pose[step] + (self._servo_kv * velocity - load) / self._servo_kp
-        self.data.act[self._servo_act] = target
-        self.data.ctrl[self.index.arm_actuators] = velocity
-        mujoco.mj_step(self.model, self.data, nstep=max(1, round(dt_s / TIMESTEP_S)))
+        self.drive(push.arm_pose[step], velocity, dt_s)
 
     def run(
         self, push: RecordedPush, values: FloatArray | None = None

@@ -17,3 +17,4 @@ def vistac_register(registry: Registry) -> None:
     registry.add("tactile", "sim.tactile", f"{_PACKAGE}.tactile:SimTactile")
     registry.add("touch_probe", "sim.touch_probe", f"{_PACKAGE}.touch_probe:SimTouchProbe")
     registry.add("shape_estimator", "sim.true_shape", f"{_PACKAGE}.true_shape:TrueShape")
+    registry.add("process_model", "sim.physics", f"{_PACKAGE}.physics_model:PhysicsProcessModel")
