@@ -502,7 +502,9 @@ class EvalOptions:
     objects: tuple[str, ...] = ("test",)
     checkpoints: Path | None = None
     models: tuple[str, ...] = MODELS
-    variants: tuple[str, ...] = tuple(variant.key for variant in VARIANTS)
+    variants: tuple[str, ...] = tuple(
+        variant.key for variant in VARIANTS if variant.model not in REPLAY_ONLY_MODELS
+    )
     max_objects: int | None = None
     max_interactions: int | None = None
     seed: int | None = None
