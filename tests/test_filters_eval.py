@@ -746,12 +746,13 @@ def test_a_run_without_its_episode_data_is_a_clear_error(tmp_path: Path) -> None
 def test_paired_eval_filters_the_first_variants_interactions(tmp_path: Path) -> None:
     """--paired: A-Analytical filters A-GNN's recorded pushes (vistac replay) instead of
     choosing its own, so both columns score the same interactions; R-GNN, another selector,
-    still runs its own. A second call reuses the replay."""
+    still runs its own. A second call reuses the replay. A-Physics (``sim.physics``, which
+    only replays) filters them too, and with the world's own motion tracks the object."""
     out = tmp_path / "eval"
     args = [
         "-q", "eval", str(ROOT / "skills/explore_push.yaml"), "--out", str(out),
         "--objects", str(ROOT / "skills/objects/rect2.yaml"), "--paired",
-        "--variants", "a-gnn,r-gnn,a-analytical", "--max-interactions", "1", *FAST,
+        "--variants", "a-gnn,r-gnn,a-analytical,a-physics", "--max-interactions", "1", *FAST,
     ]  # fmt: skip
     assert main(args) == 0
     runs = out / "runs/rect2"
@@ -769,32 +770,15 @@ def test_paired_eval_filters_the_first_variants_interactions(tmp_path: Path) -> 
     records = {r["variant"]: r for r in report["runs"]}
     assert records["A-Analytical"]["replay_of"] == str(runs / "a-gnn")
     assert records["A-Analytical"]["interactions"] == records["A-GNN"]["interactions"] == 1
-    tracking = report["tracking"]["homogeneous"]["A-Analytical"]
-    assert math.isfinite(tracking["position_m"])  # scored against A-GNN's recorded truth
+    tracking = report["tracking"]["homogeneous"]
+    assert math.isfinite(tracking["A-Analytical"]["position_m"])  # against A-GNN's truth
+    physics = json.loads((runs / "a-physics/run.json").read_text())
+    assert physics["replay_of"] == str(runs / "a-gnn")
+    assert physics["config"]["components"]["model"] == {"plugin": "sim.physics"}
+    assert tracking["A-Physics"]["position_m"] < max(0.003, 1.5 * tracking["A-GNN"]["position_m"])
     stamp = (runs / "a-analytical/eval_args.json").stat().st_mtime_ns
     assert main(args) == 0
     assert (runs / "a-analytical/eval_args.json").stat().st_mtime_ns == stamp
-
-
-def test_the_simulator_as_process_model_filters_a_gnn_pushes(tmp_path: Path) -> None:
-    """--variants a-gnn,a-physics --paired: A-Physics (``sim.physics``) filters A-GNN's
-    recorded push; with the world's own motion its belief tracks the object as closely."""
-    out = tmp_path / "eval"
-    args = [
-        "-q", "eval", str(ROOT / "skills/explore_push.yaml"), "--out", str(out),
-        "--objects", str(ROOT / "skills/objects/rect2.yaml"), "--paired",
-        "--variants", "a-gnn,a-physics", "--max-interactions", "1", *FAST,
-    ]  # fmt: skip
-    assert main(args) == 0
-    report = json.loads((out / "eval.json").read_text(encoding="utf-8"))
-    records = {r["variant"]: r for r in report["runs"]}
-    physics = records["A-Physics"]
-    assert physics["replay_of"] == str(out / "runs/rect2/a-gnn")
-    run = json.loads((out / "runs/rect2/a-physics/run.json").read_text())
-    assert run["config"]["components"]["model"] == {"plugin": "sim.physics"}
-    tracking = report["tracking"]["homogeneous"]
-    assert tracking["A-Physics"]["position_m"] < max(0.003, 1.5 * tracking["A-GNN"]["position_m"])
-    assert "A-Physics" in report["tables"]["homogeneous"]["push"]
 
 
 def test_a_replay_is_reused_only_for_the_same_finished_lead_run(
