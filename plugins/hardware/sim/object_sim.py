@@ -42,9 +42,10 @@ class ObjectSim:
         self.data = mujoco.MjData(self.model)
         self.index = SimIndex.of(self.model, len(spec.links))
         model = self.model
-        self._geoms = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"link{i}_geom")
-                       for i in range(len(spec.links))]  # fmt: skip
-        self._link_geoms = np.array(self._geoms)
+        self._link_geoms = np.array([
+            mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"link{i}_geom")
+            for i in range(len(spec.links))
+        ])  # fmt: skip
         self._free = model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT,
                                                          "object")]  # fmt: skip
         self._free_dof = model.jnt_dofadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT,
@@ -69,9 +70,9 @@ class ObjectSim:
             model.body_mass[body] = mass_kg
             model.body_inertia[body] = self._inertia_per_kg[i] * mass_kg
             model.body_ipos[body, :2] = (com_x, com_y)
-            model.geom_friction[self._geoms[i], 0] = friction
+            model.geom_friction[self._link_geoms[i], 0] = friction
         if self.hinge is not None:
-            model.dof_frictionloss[self.hinge[1]] = values[4 * len(self._geoms)]
+            model.dof_frictionloss[self.hinge[1]] = values[4 * len(self._link_geoms)]
         mujoco.mj_setConst(model, self.data)
 
     def place(self, link0_pose: FloatArray, hinge_rad: float, arm_pose: FloatArray) -> None:
@@ -138,8 +139,8 @@ class ObjectSim:
         data, pads = self.data, self.index.pad_geoms
         overlap = np.zeros(len(pads))
         geoms, dist = data.contact.geom[: data.ncon], data.contact.dist[: data.ncon]
+        on_object = (geoms[:, :, None] == self._link_geoms).any(axis=(1, 2))
         for i, pad in enumerate(pads):
-            on_object = (geoms[:, :, None] == self._link_geoms).any(axis=(1, 2))
             touching = (geoms == pad).any(axis=1) & on_object
             if touching.any():
                 overlap[i] = max(0.0, -float(dist[touching].min()))
