@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 from simctx import TestContext, box_object, sim_setup
+from vistac.cli import main
 from vistac.errors import ConfigError, DataError
 from vistac.objects import ObjectSpec, link_frames, object_from_dict
 from vistac.plugins.filters.conformance import check_process_model
@@ -22,6 +23,7 @@ from vistac.plugins.hardware.sim.physics_model import (
 )
 from vistac.types import FloatArray
 
+ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 15.0
 SPEED_MPS = 0.02
 GRIPPER_Z_M = 0.02
@@ -234,3 +236,20 @@ def test_sim_physics_refuses_what_it_cannot_simulate(tmp_path: Path) -> None:
     worldless = TestContext(tmp_path).add(PhysicsProcessModel)
     with pytest.raises(ConfigError, match=r"sim\.mujoco"):
         predict(worldless, push.states[0], push.inputs(0))
+
+
+def test_a_pull_skill_with_sim_physics_stops_before_the_robot_pulls(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "run"
+    code = main([
+        "-q", "run", str(ROOT / "skills/explore_pull.yaml"), "--out", str(out),
+        "--set", "components.model={plugin: sim.physics}",
+        "--set", "components.views.with.max_views=1",
+        "--set", "components.camera.with.width=160", "--set", "components.camera.with.height=120",
+    ])  # fmt: skip
+    assert code == 2
+    assert "predicts only push interactions, and the chosen action is a pull" in (
+        capsys.readouterr().err
+    )
+    assert not (out / "episodes").exists()  # refused before anything moved the object

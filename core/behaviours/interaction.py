@@ -11,7 +11,7 @@ from py_trees.common import Status
 from pydantic import BaseModel, ConfigDict, Field
 from vistac.behaviours.belief import initial_belief
 from vistac.component import ComponentConfig
-from vistac.errors import DataError
+from vistac.errors import ConfigError, DataError
 from vistac.protocols import Episode, Scene, StepObservation
 from vistac.tree import SkillBehaviour
 from vistac.types import (
@@ -120,11 +120,24 @@ class ChooseAction(SkillBehaviour):
             )
         candidates = self._away_from(blocked, candidates)
         action = self.component("selector").select(candidates, scene, rng)
+        self._check_filterable(action.kind)
         self.write("action", action)
         self.run.hook.vistac_action(
             run=self.run.info, episode=self.run.episode_count, action=action
         )
         return Status.SUCCESS
+
+    def _check_filterable(self, kind: str) -> None:
+        """Refuse, before the robot moves, an action whose kind the filter cannot update
+        from (its ``interactions``; a filter without them takes any)."""
+        kinds = getattr(self.component("filter"), "interactions", None)
+        if kinds is not None and kind not in kinds:
+            raise ConfigError(
+                f"choose_action: the filter's process model predicts only "
+                f"{' and '.join(kinds)} interactions, and the chosen action is a {kind}; "
+                f"offer only {', '.join(kinds)} in components.{self.config.sampler}.with."
+                "interactions, or choose another process model"
+            )
 
     def _away_from(self, blocked: FloatArray, candidates: list[Action]) -> list[Action]:
         """The candidates farther than ``avoid_blocked_m`` from every blocked point [K, 2]."""

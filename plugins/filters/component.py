@@ -828,6 +828,12 @@ class DualFilterComponent(Component):
         )
         return self._public()
 
+    @property
+    def interactions(self) -> tuple[str, ...]:
+        """The interactions (push, pull) the process model predicts, so those this filter
+        can update from."""
+        return tuple(getattr(self.model, "interactions", ("push", "pull")))
+
     def step_history(self) -> list[dict[str, Any]]:
         """The belief after every filter step so far: episode, time_s and per entry
         ``{"mean", "std"}``."""
