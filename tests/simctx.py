@@ -15,6 +15,13 @@ from vistac.plugins.hardware.sim.gripper import SimGripper
 from vistac.plugins.hardware.sim.tactile import SimTactile
 from vistac.plugins.hardware.sim.world import MujocoWorld
 
+PUSH_RATE_HZ = 15.0
+"""The skills' control rate: a recorded push's steps."""
+PUSH_SPEED_MPS = 0.02
+"""A test push's gripper speed."""
+GRIPPER_Z_M = 0.02
+"""The executor's finger height: the gripper body 20 mm above the table."""
+
 
 class TestContext:
     """skill_dir, seed, ``rng(stream)`` and ``find(kind)`` over explicitly added components."""

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from simctx import box_object, sim_setup
+from simctx import GRIPPER_Z_M, PUSH_RATE_HZ, PUSH_SPEED_MPS, box_object, sim_setup
 from vistac.cli import main
 from vistac.objects import MASS_RANGE_KG, ObjectSpec, link_frames, object_from_dict
 from vistac.plugins.filters.data import central_twist, load_trajectories
@@ -34,20 +34,16 @@ from vistac.plugins.filters.information import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-RATE_HZ = 15.0
-SPEED_MPS = 0.02
-GRIPPER_Z_M = 0.02
-"""The executor's finger height: the gripper body 20 mm above the table."""
 
 
 def straight_push(spec: ObjectSpec, seconds: float, start_x_m: float = -0.06) -> RecordedPush:
     """A push along +x through link 0's frame at 20 mm/s, the pads starting ``start_x_m``
     from it: a recording with the object where the spec puts it (a push planned, not run)."""
-    steps = round(seconds * RATE_HZ) + 1
-    time_s = np.arange(steps) / RATE_HZ
+    steps = round(seconds * PUSH_RATE_HZ) + 1
+    time_s = np.arange(steps) / PUSH_RATE_HZ
     x, y, _ = spec.pose
     arm = np.zeros((steps, 4))
-    arm[:, 0] = x + start_x_m + SPEED_MPS * time_s
+    arm[:, 0] = x + start_x_m + PUSH_SPEED_MPS * time_s
     arm[:, 1], arm[:, 2] = y, GRIPPER_Z_M
     poses = np.repeat(link_frames(spec)[None], steps, axis=0)
     return RecordedPush(spec, time_s, arm, poses)
@@ -71,8 +67,8 @@ def test_a_replay_retraces_a_push_the_world_recorded(tmp_path: Path) -> None:
     for _ in planned.time_s:
         arm_pose.append(arm.state().pose)
         object_pose.append(world.link_poses())
-        arm.command_velocity(np.array([SPEED_MPS, 0.0, 0.0, 0.0]))
-        world.step(1.0 / RATE_HZ)
+        arm.command_velocity(np.array([PUSH_SPEED_MPS, 0.0, 0.0, 0.0]))
+        world.step(1.0 / PUSH_RATE_HZ)
     recorded = RecordedPush(world.spec, planned.time_s, np.array(arm_pose), np.array(object_pose))
     moved_m = np.linalg.norm(recorded.object_pose[-1, 0, :2] - recorded.object_pose[0, 0, :2])
     turned_rad = abs(recorded.object_pose[-1, 0, 2] - recorded.object_pose[0, 0, 2])
@@ -236,7 +232,7 @@ def write_episode(folder: Path, push: RecordedPush) -> Path:
                              "parameters": push.spec.parameters()}}  # fmt: skip
     (folder / "meta.json").write_text(json.dumps(meta), encoding="utf-8")
     np.savez(folder / "data.npz", time_s=push.time_s, object_pose=poses,
-             arm_pose=push.arm_pose, arm_twist=np.gradient(push.arm_pose, axis=0) * RATE_HZ,
+             arm_pose=push.arm_pose, arm_twist=np.gradient(push.arm_pose, axis=0) * PUSH_RATE_HZ,
              tactile_force_n=np.stack([force_n, np.zeros_like(force_n)], axis=1))  # fmt: skip
     return folder
 
@@ -255,7 +251,7 @@ def test_replayed_pushes_move_with_their_own_parameters(tmp_path: Path) -> None:
         np.testing.assert_array_equal(trajectory.tcp, recorded[0].tcp)
         assert trajectory.source == f"{folder} (replayed)" and trajectory.depth_m is None
         np.testing.assert_allclose(trajectory.twists,
-                                   central_twist(trajectory.poses, 1 / RATE_HZ), rtol=1e-9)
+                                   central_twist(trajectory.poses, 1 / PUSH_RATE_HZ), rtol=1e-9)
         truth = trajectory.parameters
         # Pushed along +x through the footprint's centre, the box turns towards its CoM's side.
         if abs(truth["com_y_0"]) > 0.005:

@@ -8,7 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from simctx import TestContext, box_object, sim_setup
+from simctx import (
+    GRIPPER_Z_M,
+    PUSH_RATE_HZ,
+    PUSH_SPEED_MPS,
+    TestContext,
+    box_object,
+    sim_setup,
+)
 from vistac.cli import main
 from vistac.errors import ConfigError, DataError
 from vistac.objects import ObjectSpec, link_frames, object_from_dict
@@ -24,9 +31,6 @@ from vistac.plugins.hardware.sim.physics_model import (
 from vistac.types import FloatArray
 
 ROOT = Path(__file__).resolve().parents[1]
-RATE_HZ = 15.0
-SPEED_MPS = 0.02
-GRIPPER_Z_M = 0.02
 HINGED = {
     "name": "hinged", "type": "articulated",
     "links": [
@@ -49,10 +53,10 @@ class Recording:
         values = np.array([spec.parameters()[name] for name in names])
         sim.set_parameters(values)
         frames = link_frames(spec)
-        dt_s, steps = 1.0 / RATE_HZ, round(seconds * RATE_HZ) + 1
+        dt_s, steps = 1.0 / PUSH_RATE_HZ, round(seconds * PUSH_RATE_HZ) + 1
         start = np.array([frames[0, 0] - 0.06, frames[0, 1] + offset_y_m, GRIPPER_Z_M, 0.0])
         sim.place(frames[0], 0.0, start)
-        velocity = np.array([SPEED_MPS, 0.0, 0.0, 0.0])
+        velocity = np.array([PUSH_SPEED_MPS, 0.0, 0.0, 0.0])
         states, tcp = [], []
         for step in range(steps):
             pose_twist = np.concatenate([sim.link_poses(), sim.link_twists()], axis=1)
@@ -87,7 +91,8 @@ def physics_model(tmp_path: Path, spec: dict[str, object]) -> PhysicsProcessMode
 def predict(model: PhysicsProcessModel, state: FloatArray, inputs: ProcessInput) -> FloatArray:
     """One state [n] one step on: its pose block [6 L]."""
     with torch.no_grad():
-        prediction = model.predict(torch.as_tensor(state, dtype=DTYPE)[None], inputs, 1 / RATE_HZ)
+        states = torch.as_tensor(state, dtype=DTYPE)[None]
+        prediction = model.predict(states, inputs, 1 / PUSH_RATE_HZ)
     return np.asarray(prediction.pose[0].numpy())
 
 
@@ -127,13 +132,13 @@ def test_a_pad_placed_mid_push_gives_way_as_in_the_push() -> None:
     sim, again = ObjectSim(spec), ObjectSim(spec)
     for world in (sim, again):
         world.set_parameters(np.array(list(spec.parameters().values())))
-    velocity = np.array([SPEED_MPS, 0.0, 0.0, 0.0])
+    velocity = np.array([PUSH_SPEED_MPS, 0.0, 0.0, 0.0])
     frame = link_frames(spec)[0]
     start = np.array([frame[0] - 0.06, frame[1], GRIPPER_Z_M, 0.0])
     sim.place(frame, 0.0, start)
     gave, forces = [], []
     for step in range(45):
-        sim.drive(start + velocity * step / RATE_HZ, velocity, 1 / RATE_HZ)
+        sim.drive(start + velocity * step / PUSH_RATE_HZ, velocity, 1 / PUSH_RATE_HZ)
         sim.refresh()
         if step < 20:  # not yet pushing steadily
             continue
@@ -209,7 +214,7 @@ def test_a_heavier_object_presses_harder_on_the_fingers(tmp_path: Path) -> None:
         state[6] = mass_kg
         with torch.no_grad():
             prediction = model.predict(torch.as_tensor(state, dtype=DTYPE)[None],
-                                       push.inputs(k), 1 / RATE_HZ)  # fmt: skip
+                                       push.inputs(k), 1 / PUSH_RATE_HZ)  # fmt: skip
         forces.append(float(torch.linalg.norm(prediction.force_n[0])))
     assert forces[1] > 1.5 * forces[0]  # about mu m g: 1.2 N against 2.4 N
 
