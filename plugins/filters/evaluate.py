@@ -100,6 +100,8 @@ VARIANTS: tuple[Variant, ...] = (
 """Every variant ``vistac eval`` knows, in table order. ``a-physics`` (``sim.physics``: the
 simulator as the process model) only replays another variant's runs (``--paired``): a
 look-ahead that simulates every sigma point would take hours a run."""
+UNTRAINED_MODELS: dict[str, str] = {"analytical": "filters.analytical", "physics": "sim.physics"}
+"""The models without checkpoints, by name, and their plugins."""
 REPLAY_ONLY_MODELS: tuple[str, ...] = ("physics",)
 """Models ``vistac eval`` runs only as replays of another variant's interactions."""
 FAMILIES: tuple[str, ...] = ("m", "f", "CoM", "f_j")
@@ -695,9 +697,8 @@ def model_override(
     """The ``components.model=...`` override of ``model``, or (None, why not); ``learned``
     options (:func:`learned_model_options`) go to the GNN and FF models. The FF gets every
     link count's checkpoint in ``folder``: the fitted object's link count picks the net."""
-    if model in ("analytical", "physics"):
-        plugin = "sim.physics" if model == "physics" else "filters.analytical"
-        return "components.model=" + json.dumps({"plugin": plugin}), ""
+    if model in UNTRAINED_MODELS:
+        return "components.model=" + json.dumps({"plugin": UNTRAINED_MODELS[model]}), ""
     if model == "gnn":
         path = folder / f"gnn_{kind}.pt"
         if not path.is_file():
