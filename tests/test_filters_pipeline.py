@@ -14,7 +14,7 @@ from conftest import run_vistac
 from pydantic import ValidationError
 from vistac.cli import build_parser, main
 from vistac.errors import ConfigError
-from vistac.objects import load_object
+from vistac.objects import attachment, load_object, to_link_frame, to_world_xy
 from vistac.plugins.filters.component import (
     AXES_CLEAR,
     DualFilterComponent,
@@ -33,7 +33,12 @@ from vistac.plugins.filters.data import (
     unwrap_theta,
 )
 from vistac.plugins.filters.dual import Belief
-from vistac.plugins.filters.evaluate import first_poses, run_links
+from vistac.plugins.filters.evaluate import (
+    belief_poses,
+    episode_true_poses,
+    first_poses,
+    run_links,
+)
 from vistac.plugins.filters.state import StateLayout
 from vistac.plugins.filters.train import (
     TrainConfig,
@@ -385,6 +390,7 @@ def test_too_few_sigma_points_for_the_state_are_warned_of(
         ({"pose_std_floor": [-0.01, 0, 0, 0, 0, 0]}, "pose_std_floor.0"),
         ({"prior": {"mass_kg": [0.9, -0.4]}}, "prior.mass_kg.1"),
         ({"prior": {"com_m": [0.0, 0.0]}}, "prior.com_m.1"),
+        ({"hinge_std_m": 0.0}, "hinge_std_m"),
     ],
 )
 def test_a_negative_std_is_refused_when_the_skill_is_read(options: dict, where: str) -> None:
@@ -473,6 +479,41 @@ def test_trained_link_frames_stand_where_training_puts_them(tmp_path: Path) -> N
     bad = run_vistac("validate", str(SKILLS / "explore_push.yaml"),
                      "--set", "components.filter.with.link_frames=training")  # fmt: skip
     assert bad.returncode != 0 and "link_frames" in bad.stdout + bad.stderr
+
+
+def _joint_gaps_m(run: Path, summary: dict[str, Any]) -> np.ndarray:
+    """[steps] how far apart the belief's two links put the true joint, found in both at the
+    first filter step."""
+    steps = cast(list[dict[str, Any]], summary["filter_steps"])
+    spec = load_object(SKILLS / "objects" / "artic_rect_rect.yaml")
+    _, hinge = attachment(spec)
+    assert hinge is not None
+    poses = belief_poses(steps, [0, 1])
+    truth = episode_true_poses(run, int(steps[0]["episode"]))[0]
+    joint = to_world_xy(hinge[None], truth[0])
+    ends = [to_link_frame(joint, poses[0, k]) for k in (0, 1)]
+    return np.array([np.linalg.norm(to_world_xy(ends[0], pose[0]) - to_world_xy(ends[1], pose[1]))
+                     for pose in poses])  # fmt: skip
+
+
+def test_held_joints_keep_a_hinged_pairs_tracked_links_together(tmp_path: Path) -> None:
+    """``hinge_std_m`` on a hinged pair, end to end: the pushes filtered again (``vistac
+    replay``) with the joint held keep the links' ends of the true joint together, which
+    tracking each link on its own does not."""
+    out, held = tmp_path / "run", tmp_path / "held"
+    result = run_vistac(
+        "-q", "run", str(SKILLS / "explore_push.yaml"), "--out", str(out),
+        "--set", "tree.sequence.1.repeat.max=2",
+        "--set", "components.world.with.object=objects/artic_rect_rect.yaml",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    result = run_vistac("-q", "replay", str(out), "--out", str(held),
+                        "--set", "components.filter.with.hinge_std_m=0.002")  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    apart = _joint_gaps_m(out, _summary(out))  # measured 2.5 mm on average, at most 4.8
+    together = _joint_gaps_m(out, _summary(held))  # 0.9 and 2.1 mm
+    assert apart.mean() > 0.0015
+    assert together.mean() < 0.0012 and together.max() < 0.003
 
 
 FF_BY_LINKS = (

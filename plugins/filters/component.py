@@ -23,11 +23,11 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat
 from vistac.component import Component, ComponentConfig, ComponentContext, SkillPath
 from vistac.errors import ConfigError, DataError
-from vistac.objects import polygon_centroid_covariance, to_link_frame
+from vistac.objects import polygon_centroid_covariance, to_link_frame, to_world_xy
 from vistac.plugins.actions.affordances import link_outline
 from vistac.plugins.actions.executor import CartesianExecutor
 from vistac.plugins.filters.data import relative_poses
-from vistac.plugins.filters.dual import Belief, DualFilter
+from vistac.plugins.filters.dual import Belief, DualFilter, HeldJoints
 from vistac.plugins.filters.mirror import mirror_averaged
 from vistac.plugins.filters.models import load_checkpoint
 from vistac.plugins.filters.observation import (
@@ -205,6 +205,36 @@ class ModelFrames:
         """Index [..., N] of the link whose fitted box is nearest each point [..., N, >=2]
         (``nearest_link``), the links' frames at ``poses`` [..., L, 3]."""
         return nearest_link(points_m, self.box_poses(poses), self.box_half_extents_m)
+
+
+JOINT_TOLERANCE_M = 0.01
+"""Outline points this much farther apart than the links' closest approach still join."""
+MAX_JOINT_GAP_M = 0.02
+"""Links whose outlines come no nearer than this are not joined (``hinge_std_m``)."""
+
+
+def facing_joints(
+    outlines: Sequence[FloatArray], poses: FloatArray
+) -> tuple[torch.Tensor, FloatArray]:
+    """Where each link k meets link k + 1, in both links' frames: [L - 1, 2, 2] (m), and how
+    near the two outlines come [L - 1] (m).
+
+    outlines: each link's fitted outline [K, 2] (world, ``link_outline``); poses [L, 3]
+    (world) of the belief's link frames. The joint is the mean of the two outlines' points
+    that lie within ``JOINT_TOLERANCE_M`` of their closest approach: where the links touch or
+    nearly so, as a hinge sits in the middle of its gap and a weld along its seam; a
+    triangle's tip, not its bounding box's side.
+    """
+    joints, nearest_m = [], []
+    for k in range(len(outlines) - 1):
+        first, second = outlines[k], outlines[k + 1]
+        apart_m = np.linalg.norm(first[:, None] - second[None], axis=-1)
+        near = apart_m <= apart_m.min() + JOINT_TOLERANCE_M
+        joint = np.vstack([first[near.any(1)], second[near.any(0)]]).mean(0)
+        joints.append([to_link_frame(joint[None], poses[i])[0, :2] for i in (k, k + 1)])
+        nearest_m.append(apart_m.min())
+    ends = torch.as_tensor(np.reshape(joints, (-1, 2, 2)), dtype=DTYPE)
+    return ends, np.asarray(nearest_m)
 
 
 def com_discrepancy_var(
@@ -499,6 +529,14 @@ class DualFilterComponent(Component):
         between_episodes_std_m: float = Field(
             0.002, ge=0, description="pose std added between interactions (m, and rad / 10)"
         )
+        hinge_std_m: PositiveFloat | None = Field(
+            None, description="hold each link k and link k + 1 together where their fitted "
+            "outlines meet at the first look (``facing_joints``; a joint fixed in both links' "
+            "frames): the pose update also observes the gap between the joint's two ends as "
+            "zero with this std (m), which holds for welded and hinged links alike. Halves "
+            "the links' turn error over a push on two-link objects but moves no parameter "
+            "estimate (docs/results.md). None: each link tracked on its own (paper 1)",
+        )
         link_frames: LinkFrames = Field(
             "fitted", description="the frames the process model and the belief see the "
             "fitted links in: each superquadric's own (fitted), or those the models were "
@@ -547,8 +585,13 @@ class DualFilterComponent(Component):
             observation: ProjectionObservationModel,
             measured_steps: float | None,
             sigma_points: int | None = None,
+            joint_ends_m: torch.Tensor | None = None,
         ) -> DualFilter:
-            """The DualFilter of these settings (``sigma_points`` overrides the config's)."""
+            """The DualFilter of these settings (``sigma_points`` overrides the config's;
+            the joints [L - 1, 2, 2] of ``facing_joints`` are held with ``hinge_std_m``)."""
+            joints = None
+            if joint_ends_m is not None and self.hinge_std_m is not None:
+                joints = HeldJoints(joint_ends_m, self.hinge_std_m)
             return DualFilter(
                 layout, model, observation, sigma_points or self.sigma_points,
                 self.liu_west_delta, min_ess_fraction=self.min_ess_fraction,
@@ -556,6 +599,7 @@ class DualFilterComponent(Component):
                 evidence_scale=self.evidence_scale(measured_steps),
                 twist_bound=(self.max_link_speed_mps, self.max_link_rate_radps),
                 push_load_only=self.push_load_only,
+                joints=joints,
             )  # fmt: skip
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
@@ -585,6 +629,9 @@ class DualFilterComponent(Component):
         self.prior: Belief | None = None
         self.shape: ShapeEstimate | None = None
         self.frames: ModelFrames | None = None
+        self.joint_ends_m: torch.Tensor | None = None
+        """[L - 1, 2, 2]: each joint in its two links' frames, from the first look; None
+        unless ``hinge_std_m``."""
         self._reported_var: FloatArray = np.zeros(0)
         self._observed_shape: ShapeEstimate | None = None
         self.history: list[dict[str, Any]] = []
@@ -598,6 +645,8 @@ class DualFilterComponent(Component):
         self.frames = ModelFrames.of(scene.shape, self.config.link_frames)
         poses = self.frames.poses
         self.layout = StateLayout(len(poses))
+        if self.config.hinge_std_m is not None and len(poses) > 1:
+            self.joint_ends_m = self._joints(scene.shape, poses)
         self._reported_var = com_discrepancy_var(
             scene.shape, self.layout, self.config.com_discrepancy_m
         )
@@ -628,6 +677,22 @@ class DualFilterComponent(Component):
             )  # fmt: skip
         self.prior = self.belief
         return self._public()
+
+    def _joints(self, shape: ShapeEstimate, poses: FloatArray) -> torch.Tensor | None:
+        """``facing_joints`` of the fit, or None (with a warning) when two links in a row
+        do not meet, as a fit of three or more links may number them."""
+        ends, nearest_m = facing_joints([link_outline(link)[0] for link in shape.links], poses)
+        if (nearest_m > MAX_JOINT_GAP_M).any():
+            log.warning(
+                "filters.dual: hinge_std_m holds no joint: fitted links %s come no nearer "
+                "than %s mm to the next", np.flatnonzero(nearest_m > MAX_JOINT_GAP_M).tolist(),
+                np.round(nearest_m * 1000, 1).tolist(),
+            )  # fmt: skip
+            return None
+        world = [to_world_xy(ends[k, :1].numpy(), poses[k])[0].round(4).tolist()
+                 for k in range(len(ends))]  # fmt: skip
+        log.info("filters.dual: joints held at %s (world x, y m)", world)
+        return ends
 
     def update(self, episode: Episode) -> GaussianBelief:
         if self.belief is None or self.layout is None or self.shape is None:
@@ -877,7 +942,8 @@ class DualFilterComponent(Component):
         self.background_m = projector.background_m
         observation = self.config.observation_model(self.layout, projector, self.noise_net)
         return self.config.dual_filter(
-            self.layout, self.model, observation, self._measured_steps()
+            self.layout, self.model, observation, self._measured_steps(),
+            joint_ends_m=self.joint_ends_m,
         )
 
     def _measured_steps(self) -> float | None:

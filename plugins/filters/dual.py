@@ -47,6 +47,7 @@ from typing import NamedTuple, Protocol
 import torch
 from torch import Tensor
 from vistac.errors import DataError
+from vistac.plugins.filters.nets import rotate
 from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput, StateLayout
 
 logger = logging.getLogger(__name__)
@@ -829,6 +830,29 @@ def bound_twist(pose: Tensor, max_speed_mps: float, max_rate_radps: float) -> Te
     return torch.cat([links[..., :3], velocity, rate], -1).flatten(-2)
 
 
+class HeldJoints(NamedTuple):
+    """Joints the pose update holds together (``DualFilter`` ``joints``)."""
+
+    ends_m: Tensor
+    """[L - 1, 2, 2]: joint k in link k's frame, then in link k + 1's (m)."""
+    std_m: float
+    """The std of the gap between a joint's two ends, observed as zero each step."""
+
+
+def hinge_gaps(poses: Tensor, hinges: Tensor) -> Tensor:
+    """How far apart each hinge's two ends lie (world x, y; m).
+
+    poses [..., 6 L]: each link's block, its x, y, theta first; hinges [L - 1, 2, 2]: hinge k
+    in link k's frame, then in link k + 1's (``HeldJoints.ends_m``) -> [..., 2 (L - 1)].
+    Zero wherever the links keep together as they were found, hinged or welded.
+    """
+    links = poses.unflatten(-1, (-1, 6))
+    parent, child = links[..., :-1, :], links[..., 1:, :]
+    ends = parent[..., :2] + rotate(hinges[:, 0], parent[..., 2])
+    ends = ends - child[..., :2] - rotate(hinges[:, 1], child[..., 2])
+    return ends.flatten(-2)
+
+
 def check_prediction(prediction: Prediction, layout: StateLayout) -> None:
     """Raise DataError for a non-finite process model output or a negative process noise."""
     pose_names = layout.names[layout.pose_slice]
@@ -887,6 +911,7 @@ class DualFilter:
         evidence_scale: float = 1.0,
         twist_bound: tuple[float, float] | None = None,
         push_load_only: bool = False,
+        joints: HeldJoints | None = None,
     ) -> None:
         if sigma_points < 2:
             raise ValueError(f"sigma_points must be >= 2, got {sigma_points}")
@@ -920,6 +945,14 @@ class DualFilter:
             raise ValueError(f"twist_bound: expected (m/s, rad/s) > 0, got {twist_bound}")
         self.twist_bound = twist_bound
         self.push_load_only = push_load_only
+        if joints is not None and tuple(joints.ends_m.shape) != (layout.n_joints, 2, 2):
+            raise ValueError(
+                f"joints.ends_m: expected [{layout.n_joints}, 2, 2] (m), got "
+                f"{tuple(joints.ends_m.shape)}"
+            )
+        if joints is not None and joints.std_m <= 0:
+            raise ValueError(f"joints.std_m must be > 0, got {joints.std_m}")
+        self.joints = joints
         self.last_log_likelihood: Tensor | None = None
         """After ``update``: [..., 2] eq. 37 per modality (see ``modality_log_likelihoods``)."""
 
@@ -1115,6 +1148,30 @@ class DualFilter:
             "the object's first look"
         )
 
+    def _with_hinges(
+        self,
+        points: Tensor,
+        weights: Tensor,
+        expected: Tensor,
+        expected_mean: Tensor,
+        observation: Tensor,
+        noise_var: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The unscented update's expected [..., m, k], their mean [..., k], observation
+        [..., k] and noise variance [..., k], each with the hinge gaps (``hinge_gaps``) of the
+        pose points [..., m, 6 L] appended as observed zeros of std ``joints.std_m``."""
+        assert self.joints is not None
+        gaps = hinge_gaps(points, self.joints.ends_m.to(points))
+        gap_mean = weights @ gaps
+        zeros = gap_mean.new_zeros(gap_mean.shape)
+        gap_var = zeros + self.joints.std_m**2
+        return (
+            torch.cat([expected, gaps], -1),
+            torch.cat([expected_mean, gap_mean], -1),
+            torch.cat([observation.expand(*gap_mean.shape[:-1], -1), zeros], -1),
+            torch.cat([noise_var.expand(*gap_mean.shape[:-1], -1), gap_var], -1),
+        )
+
     def _update_pose(
         self,
         belief_pred: Belief,
@@ -1147,6 +1204,10 @@ class DualFilter:
             tensor.index_select(-1, columns)
             for tensor in (expected, expected_mean, observation, noise_var)
         )
+        if self.joints is not None and self.layout.n_joints > 0:
+            expected, expected_mean, observation, noise_var = self._with_hinges(
+                points, weights, expected, expected_mean, observation, noise_var
+            )
         try:
             mean, cov = woodbury_update(
                 prior_mean,
