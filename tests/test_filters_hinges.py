@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import Tensor
 from vistac.plugins.filters.component import facing_joints
-from vistac.plugins.filters.dual import Belief, DualFilter, HeldJoints, hinge_gaps
+from vistac.plugins.filters.dual import Belief, DualFilter, HeldJoints, joint_gaps
 from vistac.plugins.filters.state import DTYPE, Prediction, ProcessInput, StateLayout
 
 LAYOUT = StateLayout(2)
@@ -50,7 +50,7 @@ def test_facing_joints_lie_midway_across_the_gap_in_both_frames() -> None:
     joints, nearest_m = facing_joints(outlines, poses.numpy())
     assert nearest_m == pytest.approx([GAP_M], abs=1e-4)
     torch.testing.assert_close(joints, HINGES, rtol=0, atol=2e-4)
-    assert float(hinge_gaps(pose_blocks(poses), joints).abs().max()) < 1e-12
+    assert float(joint_gaps(pose_blocks(poses), joints).abs().max()) < 1e-12
 
 
 def test_a_facing_joint_is_a_tip_that_touches_a_side_not_the_middle_of_its_box() -> None:
@@ -90,9 +90,9 @@ def test_hinge_gaps_are_zero_when_the_pair_turns_about_its_joint_and_not_otherwi
     c, s = math.cos(0.5), math.sin(0.5)
     turned[1, :2] = joint + torch.stack([c * arm[0] - s * arm[1], s * arm[0] + c * arm[1]])
     turned[1, 2] += 0.5
-    assert float(hinge_gaps(pose_blocks(turned), hinges).abs().max()) < 1e-12
+    assert float(joint_gaps(pose_blocks(turned), hinges).abs().max()) < 1e-12
     turned[1, 2] += 0.1  # then about its own origin: its end of the joint swings by 0.1 rad
-    gap = hinge_gaps(pose_blocks(turned), hinges)
+    gap = joint_gaps(pose_blocks(turned), hinges)
     assert float(gap.norm()) == pytest.approx(2 * (0.04 + GAP_M / 2) * math.sin(0.05), rel=1e-9)
 
 
@@ -137,7 +137,7 @@ def test_the_joint_update_is_the_kalman_update_of_the_gap_observed_as_zero() -> 
     rows = np.zeros((2, 12))
     rows[0, 0], rows[0, 6], rows[1, 1], rows[1, 7] = 1, -1, 1, -1
     prior_cov = np.diag(pose_var.numpy())
-    gap = hinge_gaps(start, hinges).numpy()
+    gap = joint_gaps(start, hinges).numpy()
     gain = prior_cov @ rows.T @ np.linalg.inv(rows @ prior_cov @ rows.T + std_m**2 * np.eye(2))
     mean = start.numpy() - gain @ gap
     cov = prior_cov - gain @ rows @ prior_cov

@@ -839,18 +839,18 @@ class HeldJoints(NamedTuple):
     """The std of the gap between a joint's two ends, observed as zero each step."""
 
 
-def hinge_gaps(poses: Tensor, hinges: Tensor) -> Tensor:
-    """How far apart each hinge's two ends lie (world x, y; m).
+def joint_gaps(poses: Tensor, ends_m: Tensor) -> Tensor:
+    """How far apart each joint's two ends lie (world x, y; m).
 
-    poses [..., 6 L]: each link's block, its x, y, theta first; hinges [L - 1, 2, 2]: hinge k
+    poses [..., 6 L]: each link's block, its x, y, theta first; ends_m [L - 1, 2, 2]: joint k
     in link k's frame, then in link k + 1's (``HeldJoints.ends_m``) -> [..., 2 (L - 1)].
     Zero wherever the links keep together as they were found, hinged or welded.
     """
     links = poses.unflatten(-1, (-1, 6))
     parent, child = links[..., :-1, :], links[..., 1:, :]
-    ends = parent[..., :2] + rotate(hinges[:, 0], parent[..., 2])
-    ends = ends - child[..., :2] - rotate(hinges[:, 1], child[..., 2])
-    return ends.flatten(-2)
+    gap = parent[..., :2] + rotate(ends_m[:, 0], parent[..., 2])
+    gap = gap - child[..., :2] - rotate(ends_m[:, 1], child[..., 2])
+    return gap.flatten(-2)
 
 
 def check_prediction(prediction: Prediction, layout: StateLayout) -> None:
@@ -1148,7 +1148,7 @@ class DualFilter:
             "the object's first look"
         )
 
-    def _with_hinges(
+    def _with_joints(
         self,
         points: Tensor,
         weights: Tensor,
@@ -1158,10 +1158,10 @@ class DualFilter:
         noise_var: Tensor,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The unscented update's expected [..., m, k], their mean [..., k], observation
-        [..., k] and noise variance [..., k], each with the hinge gaps (``hinge_gaps``) of the
+        [..., k] and noise variance [..., k], each with the joint gaps (``joint_gaps``) of the
         pose points [..., m, 6 L] appended as observed zeros of std ``joints.std_m``."""
         assert self.joints is not None
-        gaps = hinge_gaps(points, self.joints.ends_m.to(points))
+        gaps = joint_gaps(points, self.joints.ends_m.to(points))
         gap_mean = weights @ gaps
         zeros = gap_mean.new_zeros(gap_mean.shape)
         gap_var = zeros + self.joints.std_m**2
@@ -1204,8 +1204,8 @@ class DualFilter:
             tensor.index_select(-1, columns)
             for tensor in (expected, expected_mean, observation, noise_var)
         )
-        if self.joints is not None and self.layout.n_joints > 0:
-            expected, expected_mean, observation, noise_var = self._with_hinges(
+        if self.joints is not None:
+            expected, expected_mean, observation, noise_var = self._with_joints(
                 points, weights, expected, expected_mean, observation, noise_var
             )
         try:
