@@ -17,13 +17,13 @@ from scipy.optimize import least_squares, minimize, root
 from simctx import TestContext
 from torch import Tensor
 from vistac.errors import ConfigError, DataError
-from vistac.plugins.filters import nets
+from vistac.plugins.filters import chain, nets
 from vistac.plugins.filters.analytical import (
     characteristic_length_m,
     linear_pressure_length_m,
     quasi_static_push,
 )
-from vistac.plugins.filters.mirror import reflect_poses, reflect_scene
+from vistac.plugins.filters.mirror import mirror_averaged, reflect_poses, reflect_scene
 from vistac.plugins.filters.models import (
     AnalyticalProcessModel,
     FFProcessModel,
@@ -254,7 +254,7 @@ def test_gnn_equals_the_link_by_link_reference(n_links: int) -> None:
     batched = parts(net(states, inputs, DT_S))
     gradient = torch.autograd.grad(sum(part.square().sum() for part in batched), states)[0]
     for b in range(len(acted)):
-        one = ProcessInput(*(getattr(inputs, field)[b] for field in inputs.__dataclass_fields__))
+        one = inputs.map(lambda tensor, b=b: tensor[b])
         reference = parts(reference_graph_step(net, states[b], one))
         for got, want in zip(batched, reference, strict=True):
             torch.testing.assert_close(got[b], want, rtol=1e-12, atol=1e-12)
@@ -788,3 +788,62 @@ def test_mirror_averaged_predictions_are_mirror_symmetric(name: str, tmp_path: P
     averaged = asymmetry(build(cls, tmp_path / "mirror", hidden=16, mirror_average=True, **options))
     assert plain[0] > 1e-4 and plain[1] > 1e-4
     assert averaged[0] < 1e-12 and averaged[1] < 1e-12
+
+
+# ---------------------------------------------------------------------------------------------
+# Joints given to the models (ProcessInput.hinge_m, ``filters.dual`` ``joints_from``)
+
+
+def with_hinge(inputs: ProcessInput, hinge_m: Tensor) -> ProcessInput:
+    return ProcessInput(inputs.tcp, inputs.pd_rad, inputs.is_pull, inputs.link,
+                        inputs.link_size_m, inputs.link_offset, hinge_m)  # fmt: skip
+
+
+@pytest.mark.parametrize("name", ["gnn", "ff", "analytical"])
+def test_a_given_joint_replaces_the_one_the_model_places_and_nothing_else(
+    tmp_path: Path, name: str
+) -> None:
+    """Given where the model itself puts the joint, a model predicts exactly as without; given
+    a joint 3 cm to the side, otherwise. The learned models take it from the link boxes as in
+    training (``nets.hinge_offsets``), the analytical chain from the facing sides."""
+    model = MODELS[name][0](tmp_path)
+    states, inputs = scenario((2,), 2)
+    if name == "analytical":
+        own = chain.facing_hinge_offsets(inputs)
+    else:
+        own = nets.hinge_offsets(inputs)[..., 0, :, :]
+    plain = model.predict(states, inputs, DT_S)
+    same = model.predict(states, with_hinge(inputs, own), DT_S)
+    torch.testing.assert_close(same.pose, plain.pose, rtol=0, atol=0)
+    torch.testing.assert_close(same.force_n, plain.force_n, rtol=0, atol=0)
+    aside = model.predict(states, with_hinge(inputs, own + own.new_tensor([0.0, 0.03])), DT_S)
+    moved = float((aside.pose - plain.pose).abs().max())  # an untrained net's outputs are small
+    assert moved > (1e-4 if name == "analytical" else 1e-9), moved
+
+
+def test_the_gnn_reuses_its_input_parts_only_while_the_joint_is_the_same(tmp_path: Path) -> None:
+    model = MODELS["gnn"][0](tmp_path)
+    states, inputs = scenario((2,), 2)
+    first = with_hinge(inputs, nets.hinge_offsets(inputs)[..., 0, :, :])
+    second = with_hinge(inputs, first.hinge_m + 0.02)  # type: ignore[operator]
+    with torch.no_grad():  # parts are reused, as in a look-ahead, while the inputs are equal
+        before, moved, again = (model.net(states, given, DT_S, reuse_inputs=True).pose
+                                for given in (first, second, first))  # fmt: skip
+    assert float((moved - before).abs().max()) > 1e-9
+    torch.testing.assert_close(again, before, rtol=0, atol=0)
+
+
+def test_the_reflection_mirrors_a_given_joint_and_mirror_averaging_takes_it(
+    tmp_path: Path,
+) -> None:
+    states, inputs = scenario((2,), 2)
+    hinge = torch.tensor([[0.03, 0.01]], dtype=DTYPE).expand(2, 1, 2)
+    _, mirrored = reflect_scene(states, with_hinge(inputs, hinge))
+    assert mirrored.hinge_m is not None
+    torch.testing.assert_close(mirrored.hinge_m, hinge * hinge.new_tensor([1.0, -1.0]))
+    _, plain = reflect_scene(states, inputs)
+    assert plain.hinge_m is None
+    model = MODELS["gnn"][0](tmp_path)
+    averaged = mirror_averaged(model.predict, states, with_hinge(inputs, hinge), DT_S)
+    without = mirror_averaged(model.predict, states, inputs, DT_S)
+    assert float((averaged.pose - without.pose).abs().max()) > 1e-9

@@ -39,7 +39,8 @@ from vistac.plugins.filters.evaluate import (
     first_poses,
     run_links,
 )
-from vistac.plugins.filters.state import StateLayout
+from vistac.plugins.filters.nets import hinge_offsets
+from vistac.plugins.filters.state import DTYPE, ProcessInput, StateLayout
 from vistac.plugins.filters.train import (
     TrainConfig,
     belief_loss,
@@ -514,6 +515,46 @@ def test_held_joints_keep_a_hinged_pairs_tracked_links_together(tmp_path: Path) 
     together = _joint_gaps_m(out, _summary(held))  # 0.9 and 2.1 mm
     assert apart.mean() > 0.0015
     assert together.mean() < 0.0012 and together.max() < 0.003
+
+
+def _pair_of_boxes(turn_rad: float) -> ShapeEstimate:
+    """Two fitted 90 x 90 mm boxes side by side along x, 4 mm apart (the joint at (0.147,
+    0.4)), the second one's frame turned by turn_rad (a box's symmetry)."""
+    links = []
+    for x_m, theta_rad in ((0.1, 0.0), (0.194, turn_rad)):
+        pose = np.eye(4)
+        c, s = np.cos(theta_rad), np.sin(theta_rad)
+        pose[:2, :2] = [[c, -s], [s, c]]
+        pose[:3, 3] = [x_m, 0.4, 0.025]
+        links.append(Superquadric(np.array([0.045, 0.045, 0.025]), np.array([0.1, 0.1]), pose))
+    poses = np.array([[0.1, 0.4, 0.0], [0.194, 0.4, turn_rad]])
+    return ShapeEstimate(tuple(links), poses, np.zeros((2, 14)), _box_shape().cloud)
+
+
+def test_models_get_the_joint_where_the_outlines_meet_with_joints_from_outlines(
+    tmp_path: Path,
+) -> None:
+    """With the second box's frame a half turn round, the learned models' rule (link 0's +x
+    side, link 1's -x side) puts the joint 45 mm off; ``joints_from: outlines`` gives the
+    models the joint where the fitted outlines meet, within 2 mm."""
+    shape = _pair_of_boxes(np.pi)
+    true_joint = np.array([[0.147, 0.4]])
+    specs = {"model": {"plugin": "filters.gnn"},
+             "filter": {"plugin": "filters.dual", "with": {"joints_from": "outlines"}}}
+    component = build_components(specs, tmp_path).component("filter")
+    component.initialise(Scene(shape.cloud, shape))
+    poses = component.frames.poses
+    given = component._model_joints()["hinge_m"].numpy()
+    assert np.linalg.norm(to_world_xy(given, poses[0]) - true_joint) < 0.002
+    boxes = _filter(tmp_path / "boxes", {"plugin": "filters.gnn"})
+    boxes.initialise(Scene(shape.cloud, shape))
+    assert boxes._model_joints() == {}
+    zero = torch.zeros((), dtype=DTYPE)
+    fitted = ProcessInput(torch.zeros(6, dtype=DTYPE), zero, zero, torch.tensor(0),
+                          torch.as_tensor(component.frames.half_extents_m, dtype=DTYPE),
+                          torch.as_tensor(relative_poses(poses), dtype=DTYPE))  # fmt: skip
+    rule = hinge_offsets(fitted)[0].numpy()
+    assert np.linalg.norm(to_world_xy(rule, poses[0]) - true_joint) > 0.04
 
 
 FF_BY_LINKS = (

@@ -245,8 +245,10 @@ def facing_hinge_offsets(inputs: ProcessInput) -> Tensor:
     Midway between the point of link k's footprint box nearest link k + 1's centre and the
     point of link k + 1's box nearest link k's centre, placed with the initial relative pose
     ``link_offset``: the middle of the facing sides for boxes side by side, whichever of its
-    symmetric axes a fitted box's frame took.
+    symmetric axes a fitted box's frame took; ``hinge_m`` where given.
     """
+    if inputs.hinge_m is not None:
+        return inputs.hinge_m
     offset, size = inputs.link_offset, inputs.link_size_m
     parent, child = offset[..., :-1, :], offset[..., 1:, :]
     parent_size, child_size = size[..., :-1, :], size[..., 1:, :]

@@ -85,6 +85,7 @@ def link_boxes(shape: ShapeEstimate) -> tuple[FloatArray, FloatArray]:
 
 
 LinkFrames = Literal["fitted", "trained"]
+JointsFrom = Literal["boxes", "outlines"]
 """The frames the process models see the fitted links in (``ModelFrames``)."""
 AXES_CLEAR = 0.45
 """A fitted outline shows its link's axes where more than this share of its length runs
@@ -537,6 +538,13 @@ class DualFilterComponent(Component):
             "20-55 % off the tracked turn error on the two-link test objects but brought no "
             "estimate nearer (docs/results.md). None: each link tracked on its own (paper 1)",
         )
+        joints_from: JointsFrom = Field(
+            "boxes", description="where the process models put the joint of each link k and "
+            "link k + 1: by the fitted link boxes, as in training (boxes: the middle of link "
+            "k's +x side and link k + 1's -x side for the learned models, of the facing sides "
+            "for filters.analytical), or where the fitted outlines meet at the first look "
+            "(outlines: ``facing_joints``, the same joints hinge_std_m holds)",
+        )
         link_frames: LinkFrames = Field(
             "fitted", description="the frames the process model and the belief see the "
             "fitted links in: each superquadric's own (fitted), or those the models were "
@@ -631,7 +639,7 @@ class DualFilterComponent(Component):
         self.frames: ModelFrames | None = None
         self.joint_ends_m: torch.Tensor | None = None
         """[L - 1, 2, 2]: each joint in its two links' frames, from the first look; None
-        unless ``hinge_std_m``."""
+        unless ``hinge_std_m`` or ``joints_from: outlines``."""
         self._reported_var: FloatArray = np.zeros(0)
         self._observed_shape: ShapeEstimate | None = None
         self.history: list[dict[str, Any]] = []
@@ -645,7 +653,8 @@ class DualFilterComponent(Component):
         self.frames = ModelFrames.of(scene.shape, self.config.link_frames)
         poses = self.frames.poses
         self.layout = StateLayout(len(poses))
-        if self.config.hinge_std_m is not None and len(poses) > 1:
+        joints_wanted = self.config.hinge_std_m is not None or self.config.joints_from != "boxes"
+        if joints_wanted and len(poses) > 1:
             self.joint_ends_m = self._joints(scene.shape, poses)
         self._reported_var = com_discrepancy_var(
             scene.shape, self.layout, self.config.com_discrepancy_m
@@ -684,14 +693,15 @@ class DualFilterComponent(Component):
         ends, nearest_m = facing_joints([link_outline(link)[0] for link in shape.links], poses)
         if (nearest_m > MAX_JOINT_GAP_M).any():
             log.warning(
-                "filters.dual: hinge_std_m holds no joint: fitted links %s come no nearer "
-                "than %s mm to the next", np.flatnonzero(nearest_m > MAX_JOINT_GAP_M).tolist(),
+                "filters.dual: no joints from the outlines (hinge_std_m, joints_from): fitted "
+                "links %s come no nearer than %s mm to the next; the models keep the boxes' "
+                "joints", np.flatnonzero(nearest_m > MAX_JOINT_GAP_M).tolist(),
                 np.round(nearest_m * 1000, 1).tolist(),
             )  # fmt: skip
             return None
         world = [to_world_xy(ends[k, :1].numpy(), poses[k])[0].round(4).tolist()
                  for k in range(len(ends))]  # fmt: skip
-        log.info("filters.dual: joints held at %s (world x, y m)", world)
+        log.info("filters.dual: joints at %s (world x, y m)", world)
         return ends
 
     def update(self, episode: Episode) -> GaussianBelief:
@@ -867,6 +877,7 @@ class DualFilterComponent(Component):
                 "link": torch.as_tensor(links),
                 "link_size_m": torch.as_tensor(sizes, dtype=DTYPE).expand(batch, -1, -1),
                 "link_offset": torch.as_tensor(relative_poses(poses), dtype=DTYPE),
+                **self._model_joints(),
             },
         )
 
@@ -957,6 +968,13 @@ class DualFilterComponent(Component):
         """See ``Config.evidence_scale``."""
         return self.config.evidence_scale(self._measured_steps())
 
+    def _model_joints(self) -> dict[str, torch.Tensor]:
+        """The ProcessInput ``hinge_m`` of ``joints_from: outlines`` (each joint in its
+        first link's frame [L - 1, 2]), or nothing: the models place the joints."""
+        if self.config.joints_from == "boxes" or self.joint_ends_m is None:
+            return {}
+        return {"hinge_m": self.joint_ends_m[:, 0]}
+
     def _inputs(self, episode: Episode) -> Any:
         """A function StepObservation -> ProcessInput for this episode's action."""
         assert self.shape is not None and self.belief is not None and self.layout is not None
@@ -971,6 +989,7 @@ class DualFilterComponent(Component):
             "link": torch.tensor(link),
             "link_size_m": torch.as_tensor(sizes, dtype=DTYPE),
             "link_offset": torch.as_tensor(relative_poses(poses), dtype=DTYPE),
+            **self._model_joints(),
         }
 
         def inputs(step: StepObservation) -> ProcessInput:

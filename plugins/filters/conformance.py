@@ -105,8 +105,7 @@ def _check_case(model: Any, n_links: int, link: int, is_pull: float) -> None:
 
 def _element(inputs: ProcessInput, index: int) -> ProcessInput:
     """The inputs of one batch element."""
-    fields = ProcessInput.__dataclass_fields__
-    return ProcessInput(*(getattr(inputs, name)[index] for name in fields))
+    return inputs.map(lambda tensor: tensor[index])
 
 
 def _check_prediction(prediction: Any, lead: tuple[int, ...], n_links: int, case: str) -> None:

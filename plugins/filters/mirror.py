@@ -51,8 +51,11 @@ def reflect_scene(states: Tensor, inputs: ProcessInput) -> tuple[Tensor, Process
     reflected = torch.cat([pose.flatten(-2), parameters.flatten(-2), joints], -1)
     tcp_pose = reflect_poses(inputs.tcp[..., None, None, :], origin, pd_rad)[..., 0, 0, :]
     offset = inputs.link_offset * inputs.link_offset.new_tensor([1.0, -1.0, -1.0])
+    hinge = inputs.hinge_m
+    if hinge is not None:
+        hinge = hinge * hinge.new_tensor([1.0, -1.0])
     return reflected, ProcessInput(
-        tcp_pose, inputs.pd_rad, inputs.is_pull, inputs.link, inputs.link_size_m, offset
+        tcp_pose, inputs.pd_rad, inputs.is_pull, inputs.link, inputs.link_size_m, offset, hinge
     )
 
 
@@ -66,6 +69,7 @@ def mirror_averaged(
     stacked = {
         field.name: torch.stack([getattr(inputs, field.name), getattr(mirrored_inputs, field.name)])
         for field in dataclasses.fields(ProcessInput)
+        if getattr(inputs, field.name) is not None
     }
     both = forward(torch.stack([states, mirrored_states]), ProcessInput(**stacked), dt_s)
     n_links = layout_of(states).n_links

@@ -148,10 +148,12 @@ def perp(xy: Tensor) -> Tensor:
 def hinge_offsets(inputs: ProcessInput) -> Tensor:
     """Position of each joint k in the frame of link k: [..., 1, L - 1, 2] (m).
 
-    Joint k joins links k and k + 1; it lies midway between link k's +x side centre and link
-    k + 1's -x side centre (footprint boxes from ``link_size_m``), placed with the initial
-    relative pose ``link_offset``.
+    Joint k joins links k and k + 1: ``hinge_m`` where given, else midway between link k's +x
+    side centre and link k + 1's -x side centre (footprint boxes from ``link_size_m``), placed
+    with the initial relative pose ``link_offset``, as the models were trained.
     """
+    if inputs.hinge_m is not None:
+        return inputs.hinge_m.unsqueeze(-3)
     offset = inputs.link_offset.unsqueeze(-3)  # [..., 1, L, 3]
     size = inputs.link_size_m.unsqueeze(-3)  # [..., 1, L, 2]
     parent, child = offset[..., :-1, :], offset[..., 1:, :]
@@ -582,7 +584,8 @@ class _InputKey:
     @staticmethod
     def of(states: Tensor, inputs: ProcessInput, weights: torch.dtype) -> _InputKey:
         fields = (inputs.pd_rad, inputs.is_pull, inputs.link, inputs.link_size_m)
-        tensors = (inputs.tcp[..., 2:], *fields, inputs.link_offset)
+        hinge = () if inputs.hinge_m is None else (inputs.hinge_m,)
+        tensors = (inputs.tcp[..., 2:], *fields, inputs.link_offset, *hinge)
         return _InputKey((states.shape, states.dtype, weights), tensors)
 
     def copy(self) -> _InputKey:

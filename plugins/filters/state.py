@@ -15,6 +15,7 @@ states are ``[..., C, n]`` for C sigma points.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -108,8 +109,9 @@ class ProcessInput:
     start; pd_rad: [...] push or pull direction; is_pull: [...] 1.0 for a pull, 0.0 for a push;
     link: [...] int64 index of the link the robot acts on; link_size_m: [..., L, 2] half
     extents (a1, a2) of each link's fitted footprint in its frame; link_offset: [..., L, 3]
-    initial pose of each link relative to link 0 (x_m, y_m, theta_rad), which fixes where the
-    joint is.
+    initial pose of each link relative to link 0 (x_m, y_m, theta_rad); hinge_m: [..., L - 1,
+    2] or None, each joint k in the frame of link k (m), None: the model puts it where the
+    link boxes place it (``nets.hinge_offsets``, ``chain.facing_hinge_offsets``).
     """
 
     tcp: Tensor
@@ -118,6 +120,15 @@ class ProcessInput:
     link: Tensor
     link_size_m: Tensor
     link_offset: Tensor
+    hinge_m: Tensor | None = None
+
+    def map(self, function: Callable[[Tensor], Tensor]) -> ProcessInput:
+        """These inputs with ``function`` applied to every tensor (a None hinge stays)."""
+        hinge = None if self.hinge_m is None else function(self.hinge_m)
+        return ProcessInput(
+            function(self.tcp), function(self.pd_rad), function(self.is_pull),
+            function(self.link), function(self.link_size_m), function(self.link_offset), hinge,
+        )  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -461,7 +461,7 @@ def belief_loss(truth: Tensor, belief: Belief, start_var: Tensor, layout: StateL
 
 
 def _unbatch(inputs: Any) -> Any:
-    return ProcessInput(*(getattr(inputs, f)[0] for f in inputs.__dataclass_fields__))
+    return inputs.map(lambda tensor: tensor[0])
 
 
 def _initial_belief(truth: Tensor, layout: StateLayout, prior: Any) -> Belief:
