@@ -85,8 +85,9 @@ def link_boxes(shape: ShapeEstimate) -> tuple[FloatArray, FloatArray]:
 
 
 LinkFrames = Literal["fitted", "trained"]
-JointsFrom = Literal["boxes", "outlines"]
 """The frames the process models see the fitted links in (``ModelFrames``)."""
+JointsFrom = Literal["boxes", "outlines"]
+"""Where the process models put the joints (``filters.dual`` ``joints_from``)."""
 AXES_CLEAR = 0.45
 """A fitted outline shows its link's axes where more than this share of its length runs
 within ``AXES_BAND_RAD`` of one direction or its perpendicular (``outline_axes``): a box's
