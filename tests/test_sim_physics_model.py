@@ -38,7 +38,7 @@ HINGED = {
         {"footprint": "rect1", "height_m": 0.05, "mass_kg": 0.6, "friction": 0.25,
          "com_m": [0.01, 0.0]},
     ],
-    "pose": [-0.047, 0.45, 0.0], "joint": {"friction_nm": 0.05},
+    "pose": [-0.047, 0.45, 0.0], "joint": {"friction_nm": 0.01},
 }  # fmt: skip
 
 
@@ -157,7 +157,7 @@ def test_the_model_follows_the_simulator_through_a_hinged_push(tmp_path: Path) -
     spec = object_from_dict(HINGED)
     push = Recording(spec, 3.0, offset_y_m=0.02)
     turned_rad = push.states[-1, 8] - push.states[-1, 2]
-    assert abs(turned_rad) > math.radians(3)  # the hinge turns: a real test of the chain
+    assert abs(turned_rad) > math.radians(3)  # 4.8 deg: the hinge slips, a real test of the chain
     model = physics_model(tmp_path, HINGED)
     layout = push.layout
     one_step = [predict(model, push.states[k], push.inputs(k)) - push.states[k + 1, :12]
@@ -170,8 +170,8 @@ def test_the_model_follows_the_simulator_through_a_hinged_push(tmp_path: Path) -
     for k in range(25):  # a window open loop, as the models are trained and scored
         state[: layout.n_pose] = predict(model, state, push.inputs(k))
     error = (state[:12] - push.states[25, :12]).reshape(2, 6)
-    assert np.linalg.norm(error[:, :2], axis=1).max() < 1.5e-3  # measured 0.55 mm
-    assert np.abs(error[:, 2]).max() < math.radians(0.5)  # measured 0.09 deg
+    assert np.linalg.norm(error[:, :2], axis=1).max() < 1.5e-3  # measured 0.43 mm
+    assert np.abs(error[:, 2]).max() < math.radians(0.5)  # measured 0.24 deg
 
 
 def test_the_filter_frames_need_not_be_the_links(tmp_path: Path) -> None:
