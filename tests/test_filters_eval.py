@@ -306,6 +306,7 @@ def test_eval_end_to_end(tmp_path: Path) -> None:
     assert list(cell) == ["A-GNN", "U-GNN", "A-Analytical", "Prior", "m·f known", "load known"]
     assert tables["differences"] == report["differences"] == {}  # one object: nothing to resample
     assert tables["whole_object"] == {}  # one link: nothing to add up
+    assert all(run["joint_bends_rad"] == [] for run in report["runs"])  # and no joint
     first = json.loads((out / "runs/rect2/a-gnn/summary.json").read_text())
     truth, started = first["ground_truth"], first["prior"]  # the belief the run started from
     # The prior's CoM std with the skill's com_discrepancy_m [0.010, 0.011] added.
@@ -364,6 +365,9 @@ def test_eval_scores_a_welded_pair_as_a_whole(tmp_path: Path) -> None:
     assert cell["Prior"]["mass_kg"] == pytest.approx(abs(2 * 0.9 - true_mass))
     assert math.isfinite(cell["A-GNN"]["com_m"]) and cell["A-GNN"]["runs"] == 1.0
     assert "| heterogeneous | push | A-GNN |" in (out / "tables.md").read_text(encoding="utf-8")
+    (record,) = json.loads((out / "eval.json").read_text(encoding="utf-8"))["runs"]
+    (bend_rad,) = record["joint_bends_rad"]  # welded: the links never turn apart
+    assert 0 <= bend_rad < 1e-3
 
 
 def test_eval_exits_1_when_a_run_fails(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -11,6 +11,7 @@ import pytest
 from vistac.objects import COM_SHRINK, attachment, load_object, uniform_inside
 from vistac.plugins.filters.component import Prior
 from vistac.plugins.filters.evaluate import (
+    largest_bends_rad,
     load_known_pairs,
     nrmse_tables,
     product_known_pairs,
@@ -117,3 +118,51 @@ def test_the_load_known_column_leaves_a_welded_pairs_coms_open() -> None:
     assert cell["m·f known"]["CoM_0"] == 0 < cell["load known"]["CoM_0"]
     without_file = reference_records([record | {"object_file": None}], Prior())
     assert [r["variant"] for r in without_file] == ["Prior", "m·f known"]
+
+
+ARTICULATED = SKILLS / "objects" / "artic_rect_rect.yaml"
+
+
+def _hinged_record(bend_rad: float) -> dict[str, object]:
+    """A scored run of the hinged pair whose hinge turned at most ``bend_rad``."""
+    spec = load_object(ARTICULATED)
+    truth: dict[str, object] = {"f_j_0": (0.2, spec.joint.friction_nm)}
+    for index, link in enumerate(spec.links):
+        truth |= {f"m_{index}": (0.9, link.mass_kg), f"f_{index}": (0.3, link.friction),
+                  f"CoM_{index}": ((0.0, 0.0), (0.02, -0.01))}  # fmt: skip
+    return _pair_record() | {"object": spec.name, "object_file": str(ARTICULATED),
+                             "type": "articulated", "parameters": truth,
+                             "joint_bends_rad": [bend_rad]}  # fmt: skip
+
+
+def test_a_hinge_that_held_leaves_the_pair_as_open_as_a_welded_one() -> None:
+    """A hinged pair moves as one rigid body while its hinge holds: *load known* gives the
+    welded pair's posterior and the prior's joint friction; once the hinge turned, each
+    link's load (as *m·f known*)."""
+    spec = load_object(ARTICULATED)
+    posterior = welded_pair_posterior(spec)
+    held = _hinged_record(math.radians(1.0))
+    pairs = load_known_pairs(held, Prior(joint_friction_nm=(0.3, 0.1)))
+    assert pairs is not None
+    assert pairs["m_1"] == (posterior[1][0], spec.links[1].mass_kg)
+    assert pairs["f_j_0"] == (0.3, spec.joint.friction_nm)
+    turned = _hinged_record(math.radians(10.0))
+    assert load_known_pairs(turned) == product_known_pairs(turned["parameters"])
+    unknown = _hinged_record(0.0) | {"joint_bends_rad": []}  # scored before bends were kept
+    assert load_known_pairs(unknown) == product_known_pairs(unknown["parameters"])
+
+
+def test_the_largest_bend_is_over_every_step_of_every_episode(tmp_path: Path) -> None:
+    """From the run's first step, wrapped: a pair starting at 3.1 rad apart that turns to
+    -3.1 rad has turned 0.083 rad, not 6.2."""
+    bends_by_episode = ([3.1, 3.12, 3.13], [3.13, -3.1, 3.05])
+    for index, bends in enumerate(bends_by_episode):
+        pose = np.zeros((len(bends), 2, 3))
+        pose[:, 0, 2] = 0.5
+        pose[:, 1, 2] = 0.5 + np.asarray(bends)
+        folder = tmp_path / "episodes" / f"{index:04d}"
+        folder.mkdir(parents=True)
+        np.savez(folder / "data.npz", object_pose=pose)
+    (bend,) = largest_bends_rad(tmp_path)
+    assert bend == pytest.approx(2 * math.pi - 6.2)
+    assert largest_bends_rad(tmp_path / "nothing") == []

@@ -276,16 +276,30 @@ def product_known_pairs(truth: Pairs) -> Pairs:
     return pairs
 
 
-def load_known_pairs(record: dict[str, Any]) -> Pairs | None:
+HELD_BEND_RAD = math.radians(3.0)
+"""A hinge that never turned farther than this from its first angle in a run *held*: the pair
+moved as one rigid body (a hinge that slips turns 5 to 45 deg a push)."""
+
+
+def hinges_held(record: dict[str, Any]) -> bool:
+    """Whether ``record`` (a scored run) is of a hinged pair whose hinge held
+    (:data:`HELD_BEND_RAD`; ``joint_bends_rad`` from :func:`largest_bends_rad`)."""
+    bends = record.get("joint_bends_rad") or []
+    return record["type"] == "articulated" and len(bends) == 1 and bends[0] < HELD_BEND_RAD
+
+
+def load_known_pairs(record: dict[str, Any], prior: Prior | None = None) -> Pairs | None:
     """``record``'s pairs (a scored run, rows named by the true link) estimated from what
     quasi-static pushes show of each rigid body, its friction load and load centre, exactly:
-    of a single link or a hinged pair :func:`product_known_pairs`; of a welded pair
-    (heterogeneous) the posterior means of
-    :func:`~vistac.plugins.filters.identifiable.welded_pair_posterior`, each CoM's error (a
-    distance when scored) put on the truth in the link frame's axes. None when the record
-    names no object file to read the pair from."""
+    of a single link or a hinged pair whose hinge turned :func:`product_known_pairs`; of a
+    welded pair (heterogeneous), or a hinged one whose hinges held (:func:`hinges_held`),
+    the posterior means of :func:`~vistac.plugins.filters.identifiable.welded_pair_posterior`,
+    each CoM's error (a distance when scored) put on the truth in the link frame's axes, and
+    a held joint's friction at ``prior``'s mean (holding shows only a lower bound). None when
+    the record names no object file to read the pair from."""
     truth = record["parameters"]
-    if record["type"] != "heterogeneous":
+    held = hinges_held(record)
+    if record["type"] != "heterogeneous" and not held:
         return product_known_pairs(truth)
     path = record.get("object_file")
     if not path or not Path(path).is_file():
@@ -301,6 +315,10 @@ def load_known_pairs(record: dict[str, Any]) -> Pairs | None:
             error = com - np.asarray(spec.links[link].com_m)
             moved = (float(true_com[0] + error[0]), float(true_com[1] + error[1]))
             pairs[f"CoM_{link}"] = (moved, true_com)
+    if held:
+        joint_friction = (prior or Prior()).joint_friction_nm[0]
+        pairs |= {row: (joint_friction, value) for row, (_, value) in truth.items()
+                  if family_of(row) == "f_j"}  # fmt: skip
     return pairs
 
 
@@ -324,7 +342,7 @@ def reference_records(records: Sequence[dict[str, Any]], prior: Prior) -> list[d
         prior_means = record.get("prior") or prior_pairs(record["parameters"], prior)
         whole = record.get("whole_object")
         estimates = (prior_means, product_known_pairs(record["parameters"]),
-                     load_known_pairs(record))  # fmt: skip
+                     load_known_pairs(record, prior))  # fmt: skip
         for label, pairs in zip(REFERENCES, estimates, strict=True):
             if pairs is None:
                 continue
@@ -380,6 +398,17 @@ def episode_true_poses(run_dir: Path, episode: int) -> np.ndarray:
         raise DataError(
             f"{path}: no object_pose ({error}); delete {run_dir} to run it again"
         ) from None
+
+
+def largest_bends_rad(run_dir: Path) -> list[float]:
+    """How far each true joint k (links k, k + 1) turned from its angle at the run's first
+    recorded step, the largest over every step of every episode: [L - 1] (rad)."""
+    episodes = sorted((run_dir / "episodes").glob("*/data.npz"))
+    if not episodes:
+        return []
+    poses = [episode_true_poses(run_dir, int(path.parent.name)) for path in episodes]
+    bends = np.concatenate([pose[:, 1:, 2] - pose[:, :-1, 2] for pose in poses])  # [T, L - 1]
+    return [float(b) for b in np.abs(wrap_angle(bends - bends[0])).max(axis=0, initial=0.0)]
 
 
 def tracking_errors(
@@ -883,6 +912,7 @@ def score_run(run_dir: Path) -> dict[str, Any]:
         "history": history,
         "tracking": tracking_errors(run_dir, summary, links),
         "whole_object": whole_object(summary, poses),
+        "joint_bends_rad": largest_bends_rad(run_dir),
     }
 
 
@@ -1182,7 +1212,9 @@ def tables_markdown(
         "for f over the object set's ranges); *load known*, what quasi-static pushes show of "
         "each rigid body, its friction load and where it is centred, exact and the rest the "
         "best guess from them: as *m·f known* for single links and hinged pairs, but of a "
-        "welded pair (heterogeneous) only the pair's total load and its centre.",
+        "welded pair (heterogeneous), or a hinged pair whose hinge held in the run (never "
+        f"turned {math.degrees(HELD_BEND_RAD):.0f} deg), only the pair's total load and its "
+        "centre (and of a held hinge's friction only a bound: the prior's mean).",
         "",
     ]
     for kind_type, by_kind in tables.items():
