@@ -248,6 +248,40 @@ def cmd_objects_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_objects_hinges(args: argparse.Namespace) -> int:
+    import dataclasses
+    import math
+
+    from vistac.objects import generate_configurations, load_object
+    from vistac.plugins.filters.hinges import hinge_turns, hinges_markdown
+    from vistac.recording import write_json
+
+    if args.out is not None and args.out.is_dir():
+        raise ConfigError(f"--out {args.out} is a folder; give a file, e.g. "
+                          f"{args.out / 'hinges.json'}")  # fmt: skip
+    specs = []
+    for item in args.objects:
+        if item == "generated":
+            specs += [s for s in generate_configurations(0) if s.type == "articulated"]
+        else:
+            specs.append(load_object(item))
+    unhinged = [f"{spec.name} ({spec.type})" for spec in specs if spec.joint is None]
+    if unhinged:
+        raise ConfigError(f"{', '.join(unhinged)}: no hinge to turn; give articulated objects")
+    results = {}
+    for spec in specs:
+        assert spec.joint is not None
+        friction = spec.joint.friction_nm if args.joint_friction is None else args.joint_friction
+        results[spec.name] = (friction, hinge_turns(spec, args.joint_friction))
+    print("\n".join(hinges_markdown(results, math.radians(args.threshold_deg))))
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        write_json(args.out, {name: {"joint_friction_nm": friction,
+                                     "pushes": [dataclasses.asdict(p) for p in pushes]}
+                              for name, (friction, pushes) in results.items()})  # fmt: skip
+    return 0
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     existed = args.out.exists()
     try:
@@ -474,15 +508,24 @@ def _seed(text: str) -> int:
     return seed
 
 
-def _positive(text: str) -> float:
-    """A number above 0 (argparse names the option when not)."""
+def _finite(text: str, least: float, above: bool) -> float:
+    """A finite number above (or from) ``least`` (argparse names the option when not)."""
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"invalid number: {text!r}") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"{text} is not a finite number above 0")
+    if not (value > least if above else value >= least) or value == float("inf"):
+        limit = f"above {least:g}" if above else f"of {least:g} or more"
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number {limit}")
     return value
+
+
+def _positive(text: str) -> float:
+    return _finite(text, 0.0, above=True)
+
+
+def _non_negative(text: str) -> float:
+    return _finite(text, 0.0, above=False)
 
 
 def _add_skill_options(parser: argparse.ArgumentParser) -> None:
@@ -672,6 +715,23 @@ def build_parser() -> argparse.ArgumentParser:
     generate.add_argument("--seed", type=_seed, default=0)
     generate.add_argument("--out", type=Path, required=True)
     generate.set_defaults(func=cmd_objects_generate)
+    hinges = objects_sub.add_parser(
+        "hinges", help="push hinged objects square to the chain in the simulated world and "
+        "report which pushes turn the hinge (a hinge that holds shows only a bound)",
+    )  # fmt: skip
+    hinges.add_argument(
+        "objects", nargs="+", metavar="YAML|generated",
+        help="articulated object files, or `generated`: the 40 articulated objects of "
+        "`vistac objects generate` (seed 0)",
+    )  # fmt: skip
+    hinges.add_argument(
+        "--joint-friction", type=_non_negative, default=None, metavar="NM",
+        help="set every hinge's friction to this (N m) instead of the object's",
+    )  # fmt: skip
+    hinges.add_argument("--threshold-deg", type=_positive, default=3.0,
+                        help="a turn farther than this counts as turned (default 3)")  # fmt: skip
+    hinges.add_argument("--out", type=Path, help="also write every push to this JSON file")
+    hinges.set_defaults(func=cmd_objects_hinges)
     return parser
 
 
