@@ -253,6 +253,7 @@ def cmd_objects_hinges(args: argparse.Namespace) -> int:
     import math
 
     from vistac.objects import generate_configurations, load_object
+    from vistac.plugins.filters.evaluate import OBJECT_SET_SEED
     from vistac.plugins.filters.hinges import hinge_turns, hinges_markdown
     from vistac.recording import write_json
 
@@ -262,7 +263,8 @@ def cmd_objects_hinges(args: argparse.Namespace) -> int:
     specs = []
     for item in args.objects:
         if item == "generated":
-            specs += [s for s in generate_configurations(0) if s.type == "articulated"]
+            generated = generate_configurations(OBJECT_SET_SEED)
+            specs += [spec for spec in generated if spec.type == "articulated"]
         else:
             specs.append(load_object(item))
     unhinged = [f"{spec.name} ({spec.type})" for spec in specs if spec.joint is None]
