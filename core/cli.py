@@ -62,7 +62,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     skill = load_skill(args.skill, plugins.registry, args.set)
     scheduler = Scheduler(skill, plugins, args.out, seed=args.seed, overwrite=args.overwrite)
     result = scheduler.run()
-    print(format_summary(result.summary, result.out_dir))
+    if result.summary:  # none when it failed before it started
+        print(format_summary(result.summary, result.out_dir))
     if result.error:
         print(f"error: {result.error}", file=sys.stderr)
     return result.exit_code

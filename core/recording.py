@@ -56,19 +56,20 @@ def refuse_file_as_folder(out_dir: Path) -> None:
             return
 
 
-def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
-    """Create ``out_dir``; refuse to mix with an earlier run unless ``overwrite``."""
+def check_out_dir(out_dir: Path, overwrite: bool) -> None:
+    """A ConfigError (exit 2) when ``out_dir`` cannot take a run: it or a folder above it is
+    a file, or it holds an earlier run and ``overwrite`` is not given. Changes nothing."""
     refuse_file_as_folder(out_dir)
+    if (out_dir / "run.json").exists() and not overwrite:
+        message = f"{out_dir} already holds a run; choose another folder or pass --overwrite"
+        raise ConfigError([ConfigIssue("--out", message)])
+
+
+def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
+    """Create ``out_dir``; refuse to mix with an earlier run unless ``overwrite``, which
+    removes the earlier run's files."""
+    check_out_dir(out_dir, overwrite)
     if (out_dir / "run.json").exists():
-        if not overwrite:
-            raise ConfigError(
-                [
-                    ConfigIssue(
-                        "--out",
-                        f"{out_dir} already holds a run; choose another folder or pass --overwrite",
-                    )
-                ]
-            )
         for name in RUN_FILES:
             (out_dir / name).unlink(missing_ok=True)
         for name in RUN_DIRS:

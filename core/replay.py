@@ -27,7 +27,7 @@ from vistac.behaviours.look import shape_from_links
 from vistac.errors import ConfigError, ConfigIssue
 from vistac.pluginmanager import Plugins
 from vistac.protocols import Episode, Scene, StepObservation
-from vistac.recording import RunRecorder, prepare_out_dir
+from vistac.recording import RunRecorder, check_out_dir, prepare_out_dir
 from vistac.run import RunContext
 from vistac.scheduler import add_belief_errors, run_info
 from vistac.skill import apply_overrides, validate_skill
@@ -63,14 +63,20 @@ def replay(
         raise ConfigError([ConfigIssue("components", "the run's skill has no filter to replay")])
     shape = _filter_start(run_dir, summary)
     episodes = sorted(p for p in (run_dir / "episodes").glob("[0-9]*") if p.is_dir())
-    prepare_out_dir(out_dir, overwrite)
+    check_out_dir(out_dir, overwrite)
     seed = int(source.get("seed", skill.seed))
     ctx = RunContext(skill, plugins, RunRecorder(out_dir), seed)
+    try:  # bad input (a checkpoint that is not there) stops here, before the folder is made
+        belief_filter = ctx.component(roles[0])
+    except BaseException:
+        ctx.close_all()
+        raise
+    prepare_out_dir(out_dir, overwrite)
     info = {**run_info(skill, plugins, seed), "replay_of": str(run_dir),
             "overrides": list(overrides or [])}  # fmt: skip
     start_s = time.perf_counter()
     try:
-        results = _updates(ctx.component(roles[0]), shape, episodes)
+        results = _updates(belief_filter, shape, episodes)
     except Exception as error:  # the folder says why it holds no summary
         info.update(status="error", error=f"{type(error).__name__}: {error}")
         ctx.recorder.write_run(info)

@@ -18,7 +18,7 @@ from py_trees.common import Status
 from vistac.errors import SafetyError, VistacError
 from vistac.objects import com_in_frames, match_links
 from vistac.pluginmanager import Plugins
-from vistac.recording import RunRecorder, prepare_out_dir
+from vistac.recording import RunRecorder, check_out_dir, prepare_out_dir
 from vistac.run import RunContext, SimClock
 from vistac.skill import Skill
 from vistac.tree import build_tree
@@ -30,8 +30,9 @@ log = logging.getLogger(__name__)
 @dataclass
 class RunResult:
     """Outcome of a run. ``status``: success | failure | error | interrupted;
-    ``error_exit_code``: the exit code of the error (2 for invalid input found while the run
-    built its components, e.g. a ``prior_from`` file that is not a summary)."""
+    ``error_exit_code``: the exit code of the error (2 for invalid input, also when the run
+    finds it while it builds its components, e.g. a ``prior_from`` file that is not a
+    summary); ``summary``: empty when the run failed before it started (nothing written)."""
 
     status: str
     out_dir: Path
@@ -92,7 +93,8 @@ class Scheduler:
         seed: int | None = None,
         overwrite: bool = False,
     ) -> None:
-        prepare_out_dir(out_dir, overwrite)
+        check_out_dir(out_dir, overwrite)  # the folder is made once the run has started
+        self.overwrite = overwrite
         self.skill = skill
         self.seed = skill.seed if seed is None else seed
         self.recorder = RunRecorder(out_dir)
@@ -101,13 +103,22 @@ class Scheduler:
         self.ticks = 0
 
     def run(self) -> RunResult:
-        """Run to completion. Never raises for failures: they are in the result."""
+        """Run to completion. Never raises for failures: they are in the result.
+
+        A run that fails while it sets up (its components and tree, e.g. a checkpoint that
+        is not there) has not started: it writes nothing, so the same ``--out`` takes the run
+        once the input is fixed, and its result has no summary. From the first tick on the
+        folder records the run, and any failure with it."""
         py_trees.blackboard.Blackboard.clear()
-        self.recorder.write_run(self.run_info)
         wall_start_s = time.perf_counter()
         result = RunResult("error", self.recorder.out_dir)
+        started = False
         try:
-            result.status = self._tick_until_done()
+            tree = self._set_up()
+            prepare_out_dir(self.recorder.out_dir, self.overwrite)
+            started = True
+            self.recorder.write_run(self.run_info)
+            result.status = self._tick_until_done(tree)
         except KeyboardInterrupt:
             result.status, result.error = "interrupted", "interrupted by Ctrl-C"
         except Exception as exc:  # every failure path ends with the arm stopped
@@ -121,14 +132,21 @@ class Scheduler:
         if stop_errors:
             result.status, result.error_exit_code = "error", 1
             result.error = "; ".join(filter(None, [result.error, *stop_errors]))
-        result.summary = self._finish(result, time.perf_counter() - wall_start_s)
+        if started:
+            result.summary = self._finish(result, time.perf_counter() - wall_start_s)
+        else:
+            self.ctx.close_all()
         return result
 
-    def _tick_until_done(self) -> str:
+    def _set_up(self) -> py_trees.trees.BehaviourTree:
+        """Build every component and the tree."""
         self.ctx.build_all()
-        root = build_tree(self.skill.tree, self.ctx)
-        tree = py_trees.trees.BehaviourTree(root)
+        tree = py_trees.trees.BehaviourTree(build_tree(self.skill.tree, self.ctx))
         tree.setup()
+        return tree
+
+    def _tick_until_done(self, tree: py_trees.trees.BehaviourTree) -> str:
+        root = tree.root
         self.ctx.hook.vistac_skill_start(run=self.ctx.info)
         start_s = self.ctx.time_s
         while True:

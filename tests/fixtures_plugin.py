@@ -1,6 +1,6 @@
 """Test doubles registered as a plugin (``-p fixtures_plugin``): an arm that records stop
-calls, behaviours that count, fail or raise, a toy filter with a known answer and a selector
-that first sends the fingers down on the object."""
+calls, behaviours that count, fail or raise, a toy filter with a known answer, one that cannot
+be built and a selector that first sends the fingers down on the object."""
 
 from __future__ import annotations
 
@@ -186,6 +186,16 @@ class ScalarKalmanFilter(Component):
         return GaussianBelief(np.array([self.mean]), np.array([[self.var]]), self.names)
 
 
+class BrokenAtBuild(Component):
+    """A filter whose input is bad: building it raises a ConfigError (a checkpoint that is
+    not there, say)."""
+
+    kind = "filter"
+
+    def __init__(self, config: ComponentConfig, ctx: Any) -> None:
+        raise ConfigError("broken: synthetic checkpoint that is not there")
+
+
 class OntoTheObjectFirst(Component):
     """A selector whose first choice is the first candidate push moved ``inward_m`` along its
     direction, so that the fingers come down on the object; later it takes the candidate
@@ -221,6 +231,7 @@ def vistac_register(registry: Any) -> None:
     registry.add("arm", "test.arm", f"{module}:RecordingArm")
     registry.add("action_selector", "test.onto_object_first", f"{module}:OntoTheObjectFirst")
     registry.add("filter", "test.kalman", f"{module}:ScalarKalmanFilter")
+    registry.add("filter", "test.broken", f"{module}:BrokenAtBuild")
     for name, cls in {
         "count": "Count",
         "count_at_least": "CountAtLeast",

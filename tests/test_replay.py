@@ -243,6 +243,17 @@ def test_replay_refuses_an_out_folder_overlapping_the_run(
     assert not (run / "sub").exists()
 
 
+def test_replay_with_a_checkpoint_that_is_not_there_writes_nothing(
+    recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "o"
+    missing = tmp_path / "nonexistent.pt"
+    args = ["--set", f"components.filter.with.noise_checkpoint={missing}"]
+    assert main(["-q", "replay", str(recorded), "--out", str(out), *args]) == 2
+    assert f"no such file {missing}" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_replay_out_naming_a_file_is_exit_2(
     recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

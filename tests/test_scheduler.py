@@ -76,6 +76,39 @@ def test_every_failure_stops_the_arm_and_is_recorded(
     assert run["status"] == status and summary["error"] == message
 
 
+BROKEN = "arm: {plugin: test.arm}\n  filter: {plugin: test.broken}"
+
+
+def test_a_run_that_fails_while_it_sets_up_writes_nothing(
+    tmp_path: Path, plugins: Plugins
+) -> None:
+    """Bad input found while the components are built: exit 2, the arm built before it
+    stopped, and no folder, so that the same --out takes the run once the input is fixed."""
+    _, result = _run(tmp_path, plugins, "  - count", components=BROKEN)
+    assert (result.status, result.exit_code) == ("error", 2)
+    assert result.error == "broken: synthetic checkpoint that is not there"
+    assert result.summary == {}
+    assert fixtures_plugin.STOP_CALLS == ["stop"]
+    assert not (tmp_path / "out").exists()
+    _, fixed = _run(tmp_path, plugins, "  - count")
+    assert fixed.status == "success" and (tmp_path / "out/summary.json").is_file()
+
+
+def test_a_run_that_fails_while_it_sets_up_keeps_the_run_it_would_overwrite(
+    tmp_path: Path, plugins: Plugins
+) -> None:
+    _run(tmp_path, plugins, "  - count")
+    before = {name: (tmp_path / "out" / name).read_text() for name in ("run.json", "summary.json")}
+    path = write(
+        tmp_path / "broken.yaml",
+        f"version: 1\nname: t\ncomponents:\n  {BROKEN}\ntree:\n  - count\n",
+    )
+    skill = load_skill(path, plugins.registry)
+    result = Scheduler(skill, plugins, tmp_path / "out", overwrite=True).run()
+    assert result.exit_code == 2
+    assert before == {name: (tmp_path / "out" / name).read_text() for name in before}
+
+
 def test_max_duration_is_a_safety_stop(tmp_path: Path, plugins: Plugins) -> None:
     _, result = _run(tmp_path, plugins, "  - forever", max_duration_s=0.2, rate_hz=100)
     assert result.status == "error"

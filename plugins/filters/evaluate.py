@@ -846,7 +846,8 @@ def execute(plan: RunPlan, options: EvalOptions) -> dict[str, Any]:
     log.debug("%s", printed)
     if code != 0:
         return {"status": "failed", "run_dir": str(run_dir), "exit_code": code,
-                "reason": f"the skill run exited with {code}; see {run_dir}"}  # fmt: skip
+                "reason": f"the skill run exited with {code} (its error is above; a run "
+                          f"that started records it in {run_dir})"}  # fmt: skip
     set_stamp(run_dir, asked)
     return {"status": "ok", "run_dir": str(run_dir), "exit_code": 0}
 
