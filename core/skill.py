@@ -8,6 +8,7 @@ blackboard key a node reads is written by an earlier node.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Hashable
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +17,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from vistac.component import ComponentSpec
-from vistac.errors import ConfigError, ConfigIssue, PluginError, validation_issues
+from vistac.errors import ConfigError, ConfigIssue, PluginError, suggest, validation_issues
 from vistac.registry import Registry
 from vistac.tree import TreeSpec, check_tree, parse_tree
 
@@ -214,6 +215,7 @@ def validate_skill(data: dict[str, Any], path: Path, registry: Registry) -> Skil
         issues: list[ConfigIssue] = []
     except ValidationError as exc:
         skill_file, issues = None, validation_issues("", exc, SkillFile)
+        issues = _name_roles_without_plugin(issues, data.get("components"))
     context = {"skill_dir": path.parent.resolve()}
     specs = skill_file.components if skill_file else _well_formed_specs(data.get("components"))
     components, component_issues = _resolve_components(specs, registry, context)
@@ -233,6 +235,21 @@ def validate_skill(data: dict[str, Any], path: Path, registry: Registry) -> Skil
         components,
         tree,
     )
+
+
+def _name_roles_without_plugin(issues: list[ConfigIssue], raw: Any) -> list[ConfigIssue]:
+    """Explain a component without a plugin: most often a misspelt role, since a ``--set``
+    key that names no component makes a new one. The roles close to it are named."""
+    specs = raw.items() if isinstance(raw, dict) else []
+    roles = [str(role) for role, spec in specs if isinstance(spec, dict) and "plugin" in spec]
+    named = []
+    for issue in issues:
+        role = re.fullmatch(r"components\.([^.]+)\.plugin", issue.path)
+        if role and issue.message == "Field required":
+            close = suggest(role[1], roles) or f" (the other components: {', '.join(roles)})"
+            issue = ConfigIssue(issue.path, f"missing: every component names its plugin{close}")
+        named.append(issue)
+    return named
 
 
 def _well_formed_specs(raw: Any) -> dict[str, ComponentSpec]:

@@ -190,6 +190,16 @@ tree: stop
         load_skill(skill_path, plugins.registry, ["components.arm.with.max_speed_mps=-1"])
     with pytest.raises(ConfigError, match=r"box2\.yaml: no such file \(a relative path is taken "):
         load_skill(skill_path, plugins.registry, ["components.world.with.object=objects/box2.yaml"])
+    # a misspelt role makes a new component, which has no plugin
+    with pytest.raises(ConfigError) as typo:
+        load_skill(skill_path, plugins.registry, ["components.amr.with.max_speed_mps=0.01"])
+    assert str(typo.value).endswith(
+        "components.amr.plugin: missing: every component names its plugin (did you mean 'arm'?)"
+    )
+    with pytest.raises(ConfigError) as new:
+        load_skill(skill_path, plugins.registry, ["components.probe.with.speed=0.01"])
+    assert "components.probe.plugin: missing: every component names its plugin (the other " \
+        "components: world, arm)" in str(new.value)
 
 
 def test_apply_overrides_reports_bad_keys() -> None:
