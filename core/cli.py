@@ -472,8 +472,7 @@ def _eval_touch(args: argparse.Namespace) -> int:
         explorers=parse_explorers(args.explorers or DEFAULT_EXPLORERS),
         seed=args.seed if args.seed is not None else 0, overrides=tuple(args.set),
     )  # fmt: skip
-    _print_campaign(evaluate_touch(options), args.out, "explorer", "touch")
-    return 0
+    return _print_campaign(evaluate_touch(options), args.out, "explorer", "touch")
 
 
 def _eval_goal(args: argparse.Namespace) -> int:
@@ -484,13 +483,12 @@ def _eval_goal(args: argparse.Namespace) -> int:
         skill=args.skill, out=args.out, objects=objects, trials=_trials(args), seed=args.seed,
         overrides=tuple(args.set),
     )  # fmt: skip
-    _print_campaign(evaluate_goal(options), args.out, "mode", "goal-push")
-    return 0
+    return _print_campaign(evaluate_goal(options), args.out, "mode", "goal-push")
 
 
-def _print_campaign(report: dict[str, Any], out: Path, variant: str, what: str) -> None:
-    """The tables of a campaign, its failed runs (``variant`` names what varies besides the
-    object and trial) and where the files are."""
+def _print_campaign(report: dict[str, Any], out: Path, variant: str, what: str) -> int:
+    """Print the tables of a campaign, its failed runs (``variant`` names what varies besides
+    the object and trial) and where the files are; the exit code: 1 when a run failed."""
     print((out / "tables.md").read_text(encoding="utf-8"))
     failed = [r for r in report["records"] if r["status"] != "ok"]
     for record in failed:
@@ -498,6 +496,7 @@ def _print_campaign(report: dict[str, Any], out: Path, variant: str, what: str) 
               f"{record['reason']}")  # fmt: skip
     print(f"evaluated {len(report['records']) - len(failed)} {what} runs; eval.json and "
           f"tables.md in {out}")  # fmt: skip
+    return 1 if failed else 0
 
 
 def _seed(text: str) -> int:

@@ -456,7 +456,7 @@ def test_ctrl_c_stops_the_whole_evaluation(
 
     started: list[Path] = []
 
-    def interrupted(self: Scheduler) -> str:
+    def interrupted(self: Scheduler, tree: object) -> str:
         started.append(self.recorder.out_dir)
         raise KeyboardInterrupt
 

@@ -105,6 +105,8 @@ def test_objects_by_name_comma_separated_or_all() -> None:
     assert select_goal_objects([elsewhere], SKILLS) == [Path(elsewhere)]
     with pytest.raises(ConfigError, match="did you mean hexagon"):
         select_goal_objects(["hexagn"], objects)
+    with pytest.raises(ConfigError, match=r"no such file objects/gen/homog_03\.yaml; check"):
+        select_goal_objects(["objects/gen/homog_03.yaml"], objects)
 
 
 def test_only_goal_skills_take_the_goal_evaluation() -> None:

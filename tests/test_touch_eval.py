@@ -136,7 +136,7 @@ def test_ctrl_c_stops_the_touch_evaluation(
 
     started: list[Path] = []
 
-    def interrupted(self: Scheduler) -> str:
+    def interrupted(self: Scheduler, tree: object) -> str:
         started.append(self.recorder.out_dir)
         raise KeyboardInterrupt
 
@@ -147,6 +147,40 @@ def test_ctrl_c_stops_the_touch_evaluation(
     assert "interrupted" in capsys.readouterr().err
     assert len(started) == 1
     assert not list(tmp_path.rglob("eval_args.json"))
+
+
+@pytest.mark.parametrize("obj", ["mugg", "nothing/there.ply", "notes.txt"])
+def test_an_object_that_is_not_there_is_exit_2_before_any_trial(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], obj: str
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "notes.txt").write_text("not a mesh")
+    monkeypatch.setattr(campaign, "run_once", lambda *args: pytest.fail("a trial ran"))
+    code = main(["eval", str(SKILL), "--objects", "mug", obj, "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert f"--objects: {obj!r} is no library shape (mug, " in capsys.readouterr().err
+
+
+def test_a_relative_mesh_path_is_the_working_folders(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The skill takes a relative path from its own folder: the trial gets it absolute."""
+    monkeypatch.chdir(tmp_path)
+    given: list[list[str]] = []
+    monkeypatch.setattr(campaign, "run_once", lambda args, *_: (given.append(args), (1, None))[1])
+    run_trial(_options(tmp_path / "o", "shapes/cone.ply"), "shapes/cone.ply", "dhd", 0)
+    run_trial(_options(tmp_path / "o", "mug"), "mug", "dhd", 0)
+    objects = [arg for args in given for arg in args if arg.startswith("components.probe")]
+    assert objects == [f"components.probe.with.object={tmp_path / 'shapes/cone.ply'}",
+                       "components.probe.with.object=mug"]  # fmt: skip
+
+
+def test_a_failed_trial_makes_the_evaluation_exit_1(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(campaign, "run_once", lambda *args: (1, None))
+    assert main(["-q", "eval", str(SKILL), "--objects", "mug", "--trials", "1",
+                 "--explorers", "dhd", "--out", str(tmp_path)]) == 1  # fmt: skip
 
 
 def test_out_naming_a_file_is_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

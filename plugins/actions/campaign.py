@@ -91,6 +91,9 @@ def select_goal_objects(selection: Sequence[str], objects_dir: Path) -> list[Pat
             paths.append(available[name])
         elif name.endswith((".yaml", ".yml")) and Path(name).is_file():
             paths.append(Path(name))
+        elif name.endswith((".yaml", ".yml")):
+            raise ConfigError(f"--objects: no such file {name}; check the path, or give "
+                              f"object names in {objects_dir}")  # fmt: skip
         else:
             close = difflib.get_close_matches(name, available, n=1)
             hint = f"did you mean {close[0]}? " if close else ""

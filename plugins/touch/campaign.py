@@ -100,13 +100,34 @@ def check_object_folders(objects: Sequence[str]) -> None:
             )
 
 
+def check_objects_exist(objects: Sequence[str]) -> None:
+    """ConfigError for an object that is neither a library shape nor a mesh file there is."""
+    from vistac.plugins.touch.library import KNOWN, NOVEL
+    from vistac.plugins.touch.meshes import MESH_SUFFIXES
+
+    for obj in objects:
+        mesh = Path(obj).suffix.lower() in MESH_SUFFIXES and Path(obj).is_file()
+        if mesh or obj in KNOWN or obj in NOVEL:
+            continue
+        raise ConfigError(
+            f"--objects: {obj!r} is no library shape ({', '.join([*KNOWN, *NOVEL])}) and no "
+            f"mesh file ({', '.join(MESH_SUFFIXES)}) there is; check the name or the path"
+        )
+
+
+def _probe_object(obj: str) -> str:
+    """The probe's ``object`` for ``obj``: a mesh path absolute (the skill takes a relative
+    one from its own folder, the command line from the working folder), a name as is."""
+    return str(Path(obj).resolve()) if Path(obj).suffix else obj
+
+
 def run_trial(options: TouchEvalOptions, obj: str, explorer: str, trial: int) -> dict[str, Any]:
     """Run the skill once (reusing a finished run with the same arguments): the record of
     ``touch_errors`` and the run's wall time."""
     run_dir = options.out / "runs" / explorer / object_folder(obj) / f"trial_{trial:02d}"
     args = ["-q", "run", str(options.skill), "--out", str(run_dir), "--overwrite",
             "--seed", str(options.seed + trial),
-            "--set", f"components.probe.with.object={obj}",
+            "--set", f"components.probe.with.object={_probe_object(obj)}",
             "--set", f"components.explorer.plugin=touch.{explorer}"]  # fmt: skip
     for override in options.overrides:
         args += ["--set", override]
@@ -152,6 +173,7 @@ def evaluate_touch(options: TouchEvalOptions) -> dict[str, Any]:
         raise ConfigError(f"--trials must be at least 1, got {options.trials}")
     objects = select_touch_objects(options.objects)
     check_object_folders([obj for obj, _ in objects])
+    check_objects_exist([obj for obj, _ in objects])
     records = [
         {"explorer": explorer, "object": obj, "is_known": known, "trial": trial}
         | run_trial(options, obj, explorer, trial)
