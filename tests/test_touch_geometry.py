@@ -10,8 +10,9 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import SKILLS
 from scipy.spatial.transform import Rotation
-from vistac.errors import DataError
+from vistac.errors import ConfigError, DataError
 from vistac.plugins.hardware.sim.touch_probe import SimTouchProbe
 from vistac.plugins.touch.library import (
     KNOWN,
@@ -225,6 +226,23 @@ def test_a_probe_path_starting_inside_the_object_is_an_error(tmp_path: Path) -> 
 def test_an_unknown_object_is_named_in_the_error(tmp_path: Path) -> None:
     with pytest.raises(DataError, match="teapot"):
         probe_for(tmp_path, object="teapot")
+
+
+@pytest.mark.parametrize("obj", ["teapot", "ball.ply", "notes.txt"])
+def test_a_skill_with_an_object_that_is_not_there_is_refused(tmp_path: Path, obj: str) -> None:
+    """In a skill the object is checked before anything is built (exit 2, the option named)."""
+    from vistac.pluginmanager import load_plugins
+    from vistac.skill import load_skill
+
+    (tmp_path / "notes.txt").write_text("not a mesh")
+    skill = tmp_path / "touch.yaml"
+    skill.write_text((SKILLS / "touch_recognise.yaml").read_text())
+    registry = load_plugins().registry
+    with pytest.raises(ConfigError, match=rf"components\.probe\.with\.object: .*'{obj}' is no "
+                       r"library shape \(mug, "):  # fmt: skip
+        load_skill(skill, registry, [f"components.probe.with.object={obj}"])
+    save_mesh(unit_sphere_mesh(0.1), tmp_path / "ball.ply")
+    load_skill(skill, registry, ["components.probe.with.object=ball.ply"])  # the skill's folder
 
 
 def test_random_poses_follow_the_seed(tmp_path: Path) -> None:

@@ -11,10 +11,11 @@ with Gaussian noise on the point and the normal. The true class and pose are exp
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, ValidationInfo, field_validator
 from scipy.spatial.transform import Rotation
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
@@ -42,6 +43,27 @@ class SimTouchProbe(Component):
         )
         point_noise_m: float = Field(0.001, ge=0.0, description="contact point noise std")
         normal_noise_rad: float = Field(0.03, ge=0.0, description="normal direction noise std")
+
+        @field_validator("object")
+        @classmethod
+        def _a_shape_there_is(cls, value: str, info: ValidationInfo) -> str:
+            """In a skill, a library name or a mesh file that exists, checked before anything
+            is built (a relative path is taken from the skill's folder, as the probe takes
+            it); without a skill's folder the probe's build checks it."""
+            from vistac.plugins.touch.library import KNOWN, NOVEL
+            from vistac.plugins.touch.meshes import MESH_SUFFIXES
+
+            skill_dir = (info.context or {}).get("skill_dir")
+            path = Path(skill_dir or "") / value  # an absolute value stays as it is
+            if skill_dir is None or value in KNOWN or value in NOVEL:
+                return value
+            if path.suffix.lower() in MESH_SUFFIXES and path.is_file():
+                return value
+            raise ValueError(
+                f"{value!r} is no library shape ({', '.join([*KNOWN, *NOVEL])}) and no mesh "
+                f"file ({', '.join(MESH_SUFFIXES)}) there is (a relative path is taken from "
+                "the skill file's folder)"
+            )
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
         from vistac.plugins.touch.library import resolve_shape
