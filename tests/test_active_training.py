@@ -256,6 +256,32 @@ def test_active_settings_from_presets_files_and_options(tmp_path: Path) -> None:
         active_settings("tiny", max_rounds=0)
 
 
+@pytest.mark.parametrize(
+    ("text", "messages"),
+    [
+        ("epochs: -1\nepoch: 2\n", ["epochs: Input should be greater than 0",
+                                     "epoch: Extra inputs are not permitted (did you mean "
+                                     "'epochs'"]),
+        ("models: [gnn\n", ["malformed YAML: line 2"]),
+        ("- gnn\n", ["a preset file is a YAML mapping of training settings"]),
+        ("active: {per_round: 0}\n", ["active.per_round: Input should be greater than 0"]),
+    ],
+    ids=["values", "malformed", "list", "active"],
+)
+def test_a_bad_preset_file_is_one_line_a_problem(
+    tmp_path: Path, text: str, messages: list[str]
+) -> None:
+    preset = tmp_path / "preset.yaml"
+    preset.write_text(text)
+    with pytest.raises(ConfigError) as error:
+        load_preset(str(preset))
+        active_settings(str(preset))
+    lines = str(error.value).splitlines()
+    assert len(lines) == len(messages)
+    for line, message in zip(lines, messages, strict=True):
+        assert line.startswith(f"{preset}: ") and message in line
+
+
 def test_the_loop_of_interactions_in_the_collection_skills() -> None:
     for name, key in (("explore_active", "tree.sequence.1.repeat"),
                       ("collect_pushes", "tree.sequence.0.repeat")):  # fmt: skip

@@ -56,7 +56,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
-from vistac.errors import ConfigError, DataError
+from vistac.errors import ConfigError, DataError, validation_issues
 from vistac.plugins.filters.data import Trajectory, describe, load_trajectories, stack_equal_length
 from vistac.plugins.filters.evaluate import (
     ff_checkpoint,
@@ -73,6 +73,7 @@ from vistac.plugins.filters.train import (
     build_model,
     collect,
     object_files,
+    preset_file,
     rollout_errors,
     train_interaction,
     window_steps,
@@ -149,15 +150,12 @@ def active_settings(preset: str, **changes: Any) -> ActiveConfig:
     if preset in ACTIVE_PRESETS:
         base: dict[str, Any] = ACTIVE_PRESETS[preset].model_dump()
     else:
-        import yaml
-
-        data = yaml.safe_load(Path(preset).read_text(encoding="utf-8"))
-        base = dict((data or {}).get("active") or {}) if isinstance(data, dict) else {}
+        base = dict(preset_file(Path(preset)).get("active") or {})
     base |= {key: value for key, value in changes.items() if value is not None}
     try:
         return ActiveConfig.model_validate(base)
     except ValidationError as error:
-        raise ConfigError(f"{preset}: invalid active-training settings:\n{error}") from None
+        raise ConfigError(validation_issues("active", error, ActiveConfig), preset) from None
 
 
 # ---------------------------------------------------------------------------------------------

@@ -34,9 +34,9 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from torch import Tensor, nn
-from vistac.errors import ConfigError, DataError
+from vistac.errors import ConfigError, DataError, validation_issues
 from vistac.objects import interleave_types, link_frames, load_object, write_configurations
 from vistac.plugins.filters.component import DualFilterComponent, Prior, prior_belief
 from vistac.plugins.filters.data import (
@@ -181,15 +181,23 @@ def load_preset(name: str) -> TrainConfig:
     path = Path(name)
     if not path.is_file():
         raise ConfigError(f"unknown preset {name!r}: use {', '.join(PRESETS)} or a YAML file")
-    import yaml
-
+    data = preset_file(path)
+    data.pop("active", None)  # active-training settings: vistac.plugins.filters.active
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-        if isinstance(data, dict):
-            data.pop("active", None)  # active-training settings: vistac.plugins.filters.active
         return TrainConfig.model_validate(data)
-    except ValueError as error:
-        raise ConfigError(f"{path}: not a valid training preset:\n{error}") from None
+    except ValidationError as error:
+        raise ConfigError(validation_issues("", error, TrainConfig), str(path)) from None
+
+
+def preset_file(path: Path) -> dict[str, Any]:
+    """The mapping of a preset YAML file; a ConfigError (one line) for a file that is
+    malformed or not a mapping."""
+    from vistac.skill import read_yaml
+
+    data = read_yaml(path)
+    if not isinstance(data, dict):
+        raise ConfigError("a preset file is a YAML mapping of training settings", str(path))
+    return data
 
 
 # ---------------------------------------------------------------------------------------------
