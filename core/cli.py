@@ -396,12 +396,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
         evaluate,
         parse_models,
         parse_variants,
+        read_skill,
     )
     from vistac.plugins.touch.campaign import is_touch_skill
     from vistac.recording import refuse_file_as_folder
 
     if not args.skill.is_file():
         raise ConfigError(f"{args.skill}: no such skill file")
+    read_skill(args.skill)  # malformed or not a mapping: one clear line
     refuse_file_as_folder(args.out)
     kind = "parameter-estimation"
     if is_touch_skill(args.skill):

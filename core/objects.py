@@ -427,15 +427,11 @@ def object_from_dict(data: Any, source: str = "") -> ObjectSpec:
 
 
 def load_object(path: str | Path) -> ObjectSpec:
-    """Read an object YAML file (safe-loaded)."""
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as error:
-        raise ConfigError([ConfigIssue("", f"cannot read: {error.strerror}")], str(path)) from None
-    except yaml.YAMLError as error:
-        raise ConfigError([ConfigIssue("", f"invalid YAML: {error}")], str(path)) from None
-    return object_from_dict(data, str(path))
+    """Read an object YAML file (safe-loaded; a missing or malformed file, or a key given
+    twice, is one clear ConfigError line)."""
+    from vistac.skill import read_yaml
+
+    return object_from_dict(read_yaml(Path(path)), str(path))
 
 
 def save_object(spec: ObjectSpec, path: str | Path) -> None:

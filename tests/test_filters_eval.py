@@ -434,6 +434,19 @@ def test_eval_bad_input_is_exit_2(
     assert not (tmp_path / "runs").exists()
 
 
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [("tree: [look\n", "malformed YAML: line 2"), ("- look\n", "not a skill (a YAML mapping)")],
+)
+def test_eval_of_a_skill_that_is_no_mapping_is_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, message: str
+) -> None:
+    skill = tmp_path / "skill.yaml"
+    skill.write_text(text)
+    assert main(["-q", "eval", str(skill), "--out", str(tmp_path / "o")]) == 2
+    assert f"{skill}: {message}" in capsys.readouterr().err
+
+
 def test_eval_out_naming_a_file_is_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

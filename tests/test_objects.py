@@ -135,8 +135,12 @@ def test_load_rejects_unknown_footprint_and_bad_yaml(tmp_path: Path) -> None:
     )
     with pytest.raises(ConfigError, match=r"links\[0\]\.footprint"):
         load_object(bad_footprint)
-    with pytest.raises(ConfigError, match="invalid YAML"):
+    with pytest.raises(ConfigError) as malformed:
         load_object(_write(tmp_path, "name: [unclosed\n"))
+    assert len(str(malformed.value).splitlines()) == 1
+    assert ": malformed YAML: line 2, column 1: expected ',' or ']'" in str(malformed.value)
+    with pytest.raises(ConfigError, match="duplicate key 'name'"):
+        load_object(_write(tmp_path, "name: a\nname: b\n"))
     with pytest.raises(ConfigError, match="must be a mapping"):
         load_object(_write(tmp_path, "- 1\n- 2\n"))
 

@@ -44,7 +44,6 @@ from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
-import yaml
 from pydantic import ValidationError
 from vistac.errors import ConfigError, DataError, VistacError
 from vistac.objects import (
@@ -65,7 +64,7 @@ from vistac.plugins.filters.component import Prior
 from vistac.plugins.filters.identifiable import welded_pair_posterior
 from vistac.plugins.filters.models import FF_MAX_LINKS, LearnedModelConfig
 from vistac.recording import refuse_file_as_folder
-from vistac.skill import apply_overrides
+from vistac.skill import apply_overrides, read_yaml
 from vistac.types import GaussianBelief
 
 log = logging.getLogger(__name__)
@@ -606,11 +605,9 @@ def chosen_variants(options: EvalOptions) -> list[Variant]:
 
 
 def read_skill(skill: Path) -> dict[str, Any]:
-    """The skill file as a mapping (safe-loaded), for reading settings before a run."""
-    try:
-        data = yaml.safe_load(skill.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as error:
-        raise ConfigError(f"{skill}: cannot read the skill ({error})") from None
+    """The skill file as a mapping (safe-loaded), for reading settings before a run; a
+    ConfigError (one line) for a file that is missing, malformed or not a mapping."""
+    data = read_yaml(skill)
     if not isinstance(data, dict):
         raise ConfigError(f"{skill}: not a skill (a YAML mapping)")
     return data
