@@ -143,6 +143,7 @@ def run_once(args: list[str], run_dir: Path, who: str) -> tuple[int, dict[str, A
     if isinstance(finished, dict) and {key: finished.get(key) for key in asked} == asked:
         return int(finished["exit_code"]), json.loads(summary_path.read_text("utf-8"))
     set_stamp(run_dir, None)
+    summary_path.unlink(missing_ok=True)  # a run that fails before it starts writes none
     code, printed = run_quietly(args)
     log.debug("%s", printed)
     if code == ConfigError.exit_code:

@@ -176,6 +176,23 @@ def test_an_interrupted_run_stops_the_campaign_and_is_never_reused(
     assert run_once(first, run_dir, "goal eval")[0] == 0 and len(calls) == 1
 
 
+def test_a_run_that_fails_before_it_starts_is_not_given_the_earlier_runs_summary(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Such a run writes nothing (a checkpoint that is not there, a robot that does not
+    answer), so the folder still holds the run before it; that one is not this run's."""
+    import vistac.cli
+
+    run_dir = tmp_path / "run"
+    first, second = (["-q", "run", "skill.yaml", "--out", str(run_dir), "--seed", seed]
+                     for seed in ("0", "1"))  # fmt: skip
+    fake_run(monkeypatch, 0)
+    assert run_once(first, run_dir, "goal eval")[0] == 0
+    monkeypatch.setattr(vistac.cli, "main", lambda args: 1)  # fails before it writes anything
+    assert run_once(second, run_dir, "goal eval") == (1, None)
+    assert not (run_dir / "eval_args.json").exists()
+
+
 def test_a_run_made_by_other_code_is_not_reused(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
