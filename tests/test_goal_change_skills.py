@@ -69,14 +69,18 @@ def test_detect_change_reports_each_push(tmp_path: Path) -> None:
     assert summary["belief"]["m_0"]["mean"] == pytest.approx(known["m_0"]["mean"])
 
 
-def test_a_missing_prior_fails_before_anything_moves(tmp_path: Path) -> None:
+def test_a_missing_prior_fails_before_anything_moves(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Invalid input found while the run sets up: exit 2, the error says what to give, and
+    the run has not started, so it leaves no folder behind."""
     out = tmp_path / "change"
     args = ["-q", "run", str(SKILLS / "detect_change.yaml"), "--out", str(out),
             "--set", f"components.filter.with.prior_from={tmp_path / 'missing.json'}"]
     assert main(args) == 2  # invalid input
-    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
-    assert "prior_from: cannot read" in summary["error"] and "measured values" in summary["error"]
-    assert not (out / "episodes").exists() or not any((out / "episodes").iterdir())
+    error = capsys.readouterr().err
+    assert "prior_from: cannot read" in error and "measured values" in error
+    assert not out.exists()
 
 
 @pytest.mark.slow
