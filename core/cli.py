@@ -239,7 +239,9 @@ def cmd_tree(args: argparse.Namespace) -> int:
 
 def cmd_objects_generate(args: argparse.Namespace) -> int:
     from vistac.objects import write_configurations
+    from vistac.recording import refuse_file_as_folder
 
+    refuse_file_as_folder(args.out)
     split = write_configurations(args.seed, args.out)
     counts = ", ".join(f"{len(names)} {part}" for part, names in split.items())
     print(

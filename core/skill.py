@@ -123,8 +123,12 @@ def parse_override(text: str) -> tuple[list[str], Any]:
         raise ConfigError([ConfigIssue("--set", f"{text!r} is not of the form key.path=value")])
     try:
         parsed = yaml.safe_load(value) if value.strip() else ""
-    except yaml.YAMLError:
-        parsed = value
+    except yaml.YAMLError as exc:
+        if value.lstrip().startswith(("{", "[")):  # meant as a mapping or list: say why not
+            problem = getattr(exc, "problem", None) or "not valid YAML"
+            issue = ConfigIssue("--set", f"{key.strip()}: {problem} in {value!r}")
+            raise ConfigError([issue]) from None
+        parsed = value  # a plain string that YAML cannot read, e.g. 'a: b: c'
     return key.strip().split("."), parsed
 
 

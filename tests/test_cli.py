@@ -43,6 +43,8 @@ def test_objects_generate(cli: Cli, tmp_path: Path) -> None:
     assert sum(len(v) for v in split.values()) == 120
     code, _, err = cli("validate", str(tmp_path / "nonexistent.yaml"))
     assert code == 2 and "file not found" in err
+    code, _, err = cli("objects", "generate", "--out", str(tmp_path / "split.json" / "objects"))
+    assert code == 2 and f"--out: {tmp_path / 'split.json'} is a file; give a folder" in err
 
 
 def test_requested_plugin_that_is_missing_is_an_error(cli: Cli) -> None:

@@ -217,6 +217,9 @@ def test_apply_overrides_reports_bad_keys() -> None:
     )
     with pytest.raises(ConfigError, match="no list item '5'"):
         apply_overrides(tree, ["tree.sequence.5=stop"])
+    with pytest.raises(ConfigError, match=r"--set: a: expected ',' or '}', but got '<stream end>'"):
+        apply_overrides({}, ["a={plugin: x"])  # a mapping cut short
+    assert apply_overrides({}, ["a=b: c: d"]) == {"a": "b: c: d"}  # a plain string YAML cannot read
 
 
 def test_every_shipped_skill_validates(cli: Cli) -> None:
