@@ -504,13 +504,18 @@ def _print_campaign(report: dict[str, Any], out: Path, variant: str, what: str) 
 
 
 def _seed(text: str) -> int:
-    """A ``--seed`` value: an integer, 0 or more (argparse names the option when not)."""
+    """A ``--seed`` value: an integer from 0 to ``MAX_SEED`` (argparse names the option when
+    not)."""
+    from vistac.skill import MAX_SEED
+
     try:
         seed = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
     if seed < 0:
         raise argparse.ArgumentTypeError(f"{seed} is negative; give 0 or more")
+    if seed > MAX_SEED:
+        raise argparse.ArgumentTypeError(f"{seed} is too large; give at most {MAX_SEED}")
     return seed
 
 

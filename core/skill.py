@@ -21,6 +21,10 @@ from vistac.errors import ConfigError, ConfigIssue, PluginError, suggest, valida
 from vistac.registry import Registry
 from vistac.tree import TreeSpec, check_tree, parse_tree
 
+MAX_SEED = 2**32 - 1
+"""The largest seed a skill or ``--seed`` takes (the simulator and torch take 64-bit seeds, and
+evaluations add the trial to it)."""
+
 
 class SkillFile(BaseModel):
     """Top level of a skill YAML."""
@@ -30,7 +34,7 @@ class SkillFile(BaseModel):
     version: Literal[1]
     name: str
     description: str = ""
-    seed: int = Field(0, ge=0, description="seeds every random stream of the run")
+    seed: int = Field(0, ge=0, le=MAX_SEED, description="seeds every random stream of the run")
     rate_hz: float = Field(15.0, gt=0, description="control and observation rate")
     max_duration_s: float = Field(
         3600.0, gt=0, description="abort the run after this much (sim or wall) time"

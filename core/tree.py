@@ -240,7 +240,7 @@ def _role_issues(
         elif kinds[role] != kind:
             issues.append(
                 ConfigIssue(
-                    node.path, f"role {role!r} is a {kinds[role]}, this node needs a {kind}"
+                    node.path, f"role {role!r} is {_a(kinds[role])}, this node needs {_a(kind)}"
                 )
             )
     return issues
@@ -312,3 +312,8 @@ def build_tree(node: NodeSpec, run: RunContext | None) -> py_trees.behaviour.Beh
         )
         return RepeatUntil(label, body, until, node.max_iterations, node.on_max)
     return py_trees.composites.Sequence("sequence", memory=True, children=children)
+
+
+def _a(noun: str) -> str:
+    """``noun`` with its indefinite article: 'an arm', 'a filter'."""
+    return f"{'an' if noun[:1] in 'aeiou' else 'a'} {noun}"

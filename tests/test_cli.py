@@ -68,3 +68,8 @@ def test_a_negative_seed_is_exit_2_naming_it(
     assert exited.value.code == 2
     assert "argument --seed: -1 is negative; give 0 or more" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+    with pytest.raises(SystemExit) as exited:  # it overflowed the simulator's seed
+        main([*command[:-1], str(tmp_path / "out"), "--seed", str(2**64)])
+    assert exited.value.code == 2
+    assert f"{2**64} is too large; give at most {2**32 - 1}" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

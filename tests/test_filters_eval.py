@@ -934,3 +934,7 @@ def test_compare_pairs_two_evaluations_by_object(
     (lone / "eval.json").write_text("{not json", encoding="utf-8")
     assert main(["compare", str(lone), str(base)]) == 2
     assert "eval.json: not a `vistac eval` report" in capsys.readouterr().err
+    (lone / "eval.json").write_text('{"skill": "touch.yaml", "records": []}', encoding="utf-8")
+    assert main(["compare", str(lone), str(base)]) == 2
+    assert "the evaluation of touch.yaml, a touch or goal-push skill; `vistac compare` takes " \
+        "two evaluations of a parameter-estimation skill" in capsys.readouterr().err

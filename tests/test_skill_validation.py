@@ -139,7 +139,7 @@ tree:
     text = str(info.value)
     assert "tree[0].needs_widget: reads 'widget', but no earlier node writes it" in text
     assert "tree[1].choose_action: needs a action_sampler component as role 'affordances'" in text
-    assert "tree[1].choose_action: role 'arm' is a arm, this node needs a action_selector" in text
+    assert "tree[1].choose_action: role 'arm' is an arm, this node needs an action_selector" in text
     assert "tree[1].choose_action: reads 'cloud', but no earlier node writes it" in text
 
 

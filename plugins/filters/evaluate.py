@@ -1183,9 +1183,16 @@ def _read_report(folder: Path) -> dict[str, Any]:
         raise ConfigError(f"{folder}: no eval.json; give the --out folder of a `vistac eval`")
     try:
         report = json.loads(path.read_text(encoding="utf-8"))
+    except ValueError as error:
+        raise ConfigError(f"{path}: not a `vistac eval` report ({error})") from None
+    if isinstance(report, dict) and "records" in report:  # a touch or goal-push campaign
+        raise ConfigError(f"{path}: the evaluation of {report.get('skill')}, a touch or "
+                          "goal-push skill; `vistac compare` takes two evaluations of a "
+                          "parameter-estimation skill")  # fmt: skip
+    try:
         return {key: report[key] for key in ("variants", "runs", "ranges")}
-    except (ValueError, KeyError, TypeError) as error:
-        raise ConfigError(f"{path}: not a `vistac eval` report ({error!r})") from None
+    except (KeyError, TypeError) as error:
+        raise ConfigError(f"{path}: not a `vistac eval` report (no {error})") from None
 
 
 def tables_markdown(
