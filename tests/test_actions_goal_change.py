@@ -275,6 +275,32 @@ def test_icem_rejects_a_bad_goal_and_a_skill_without_a_filter(tmp_path: Path) ->
         TestContext(tmp_path).add(ICEMController)
 
 
+def test_a_goal_out_of_the_arms_reach_is_refused_before_anything_moves(tmp_path: Path) -> None:
+    """The controller checks the goal against the arm's workspace; ``plan_push`` asks it
+    when the tree is set up (`vistac run`: exit 2, no run folder; before, the skill pushed
+    until its push budget ran out)."""
+    from types import SimpleNamespace
+
+    from vistac.plugins.actions.goal import PlanPush
+    from vistac.plugins.hardware.limits import ArmLimits
+
+    ctx = TestContext(tmp_path)
+    ctx.components["filter"] = SlidingFilter((0.0, 0.45, 0.0))
+    ctx.components["arm"] = SimpleNamespace(config=ArmLimits())  # x -0.5..0.5, y 0.15..0.85 m
+    controller = ctx.add(ICEMController)
+    controller.check_goal((0.06, 0.49, 0.0))
+    controller.check_goal((0.5, 0.85, 3.0))  # on the edge
+    for goal in ((0.6, 0.49, 0.0), (0.0, 0.1, 0.0)):
+        with pytest.raises(ConfigError, match=rf"goal \({goal[0]:.3f}, {goal[1]:.3f}\) m lies "
+                           r"outside the arm's workspace \(x -0\.50 to 0\.50 m, y 0\.15 to "
+                           r"0\.85 m\); give a goal within it"):  # fmt: skip
+            controller.check_goal(goal)
+    node = PlanPush("plan", PlanPush.Config(goal=(0.6, 0.49, 0.0)), None)
+    node.component = lambda field_name: controller  # type: ignore[method-assign]
+    with pytest.raises(ConfigError, match=r"goal \(0\.600, 0\.490\) m lies outside"):
+        node.setup()
+
+
 # -- change detection --------------------------------------------------------------------------
 
 

@@ -80,6 +80,13 @@ class PlanPush(SkillBehaviour):
         )
         look_std_m: float | None = _LOOK_STD_FIELD
 
+    def setup(self, **kwargs: Any) -> None:
+        """Refuse a goal the controller cannot bring the object to before anything moves
+        (the controller's ``check_goal``, where it has one)."""
+        check_goal = getattr(self.component("controller"), "check_goal", None)
+        if callable(check_goal):
+            check_goal(self.config.goal)
+
     def update(self) -> Status:
         belief, blocked = self.read("belief"), blocked_points(self)
         scene = Scene(self.read("cloud"), self.read("shape"), belief, blocked)

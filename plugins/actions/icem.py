@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -169,6 +169,17 @@ class ICEMController(Component):
         """The last link whose outline was traced, and its points and normals."""
 
     # -- Controller protocol ----------------------------------------------------------------
+
+    def check_goal(self, goal: Sequence[float]) -> None:
+        """ConfigError when the goal's position (x_m, y_m) lies outside the arm's workspace,
+        where no push can bring the object."""
+        (x_m, y_m), (low, high) = goal[:2], self.workspace_m
+        if low[0] <= x_m <= high[0] and low[1] <= y_m <= high[1]:
+            return
+        raise ConfigError(
+            f"goal ({x_m:.3f}, {y_m:.3f}) m lies outside the arm's workspace (x {low[0]:.2f} "
+            f"to {high[0]:.2f} m, y {low[1]:.2f} to {high[1]:.2f} m); give a goal within it"
+        )
 
     def plan(self, scene: Scene, goal: FloatArray, rng: np.random.Generator) -> Action:
         if scene.shape is None:
