@@ -122,8 +122,16 @@ def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
             "  (truth: the true link nearest each belief link; the CoM in the belief's frame "
             "of that link, where the belief puts it at the end)"
         )
-    lines.append(f"  data: {out_dir}/ (run.json, summary.json, episodes/, views/)")
+    lines.append(f"  data: {out_dir}/ ({', '.join(_written(out_dir))})")
     return "\n".join(lines)
+
+
+def _written(out_dir: Path) -> list[str]:
+    """The run files and folders in ``out_dir`` (a folder with a trailing /)."""
+    from vistac.recording import RUN_DIRS, RUN_FILES
+
+    return [f"{name}/" if (out_dir / name).is_dir() else name
+            for name in (*RUN_FILES, *RUN_DIRS) if (out_dir / name).exists()]  # fmt: skip
 
 
 def _touch_line(touch: dict[str, Any], errors: dict[str, Any]) -> str:

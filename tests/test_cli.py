@@ -73,3 +73,15 @@ def test_a_negative_seed_is_exit_2_naming_it(
     assert exited.value.code == 2
     assert f"{2**64} is too large; give at most {2**32 - 1}" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_the_summary_names_the_files_the_run_wrote(tmp_path: Path) -> None:
+    """A run stopped before its first push, or a replay, has no episodes/ (the line named
+    every run file whether it was there or not)."""
+    from vistac.cli import format_summary
+
+    for name in ("run.json", "summary.json"):
+        (tmp_path / name).write_text("{}")
+    (tmp_path / "views").mkdir()
+    text = format_summary({"skill": "s", "status": "success", "wall_time_s": 1.0}, tmp_path)
+    assert text.splitlines()[-1] == f"  data: {tmp_path}/ (run.json, summary.json, views/)"
