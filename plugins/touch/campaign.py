@@ -102,17 +102,12 @@ def check_object_folders(objects: Sequence[str]) -> None:
 
 def check_objects_exist(objects: Sequence[str]) -> None:
     """ConfigError for an object that is neither a library shape nor a mesh file there is."""
-    from vistac.plugins.touch.library import KNOWN, NOVEL
-    from vistac.plugins.touch.meshes import MESH_SUFFIXES
+    from vistac.plugins.touch.library import missing_shape
 
     for obj in objects:
-        mesh = Path(obj).suffix.lower() in MESH_SUFFIXES and Path(obj).is_file()
-        if mesh or obj in KNOWN or obj in NOVEL:
-            continue
-        raise ConfigError(
-            f"--objects: {obj!r} is no library shape ({', '.join([*KNOWN, *NOVEL])}) and no "
-            f"mesh file ({', '.join(MESH_SUFFIXES)}) there is; check the name or the path"
-        )
+        problem = missing_shape(obj)
+        if problem:
+            raise ConfigError(f"--objects: {problem}; check the name or the path")
 
 
 def _probe_object(obj: str) -> str:

@@ -17,7 +17,13 @@ from pathlib import Path
 
 import numpy as np
 from vistac.errors import DataError
-from vistac.plugins.touch.meshes import DEFAULT_SIZE_M, Mesh, load_mesh, make_mesh
+from vistac.plugins.touch.meshes import (
+    DEFAULT_SIZE_M,
+    MESH_SUFFIXES,
+    Mesh,
+    load_mesh,
+    make_mesh,
+)
 from vistac.types import FloatArray
 
 log = logging.getLogger(__name__)
@@ -334,6 +340,18 @@ def load_class(path: Path | str) -> tuple[str, Mesh]:
 def shape_name(spec: str) -> str:
     """The class name ``spec`` resolves to: a library name as is, a mesh file's stem."""
     return spec if spec in KNOWN or spec in NOVEL else Path(spec).stem
+
+
+def missing_shape(spec: str, base: Path | None = None) -> str | None:
+    """Why ``spec`` names no shape that :func:`resolve_shape` can give (a library name, or a
+    mesh file that exists; a relative path from ``base``), or None when it names one."""
+    path = Path(base or "") / spec  # an absolute spec stays as it is
+    if spec in KNOWN or spec in NOVEL or (path.suffix.lower() in MESH_SUFFIXES and path.is_file()):
+        return None
+    return (
+        f"{spec!r} is no library shape ({', '.join([*KNOWN, *NOVEL])}) and no mesh file "
+        f"({', '.join(MESH_SUFFIXES)}) there is"
+    )
 
 
 def resolve_shape(spec: str, base: Path | None = None) -> Mesh:

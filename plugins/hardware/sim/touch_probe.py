@@ -11,7 +11,6 @@ with Gaussian noise on the point and the normal. The true class and pose are exp
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -50,20 +49,13 @@ class SimTouchProbe(Component):
             """In a skill, a library name or a mesh file that exists, checked before anything
             is built (a relative path is taken from the skill's folder, as the probe takes
             it); without a skill's folder the probe's build checks it."""
-            from vistac.plugins.touch.library import KNOWN, NOVEL
-            from vistac.plugins.touch.meshes import MESH_SUFFIXES
+            from vistac.plugins.touch.library import missing_shape
 
             skill_dir = (info.context or {}).get("skill_dir")
-            path = Path(skill_dir or "") / value  # an absolute value stays as it is
-            if skill_dir is None or value in KNOWN or value in NOVEL:
-                return value
-            if path.suffix.lower() in MESH_SUFFIXES and path.is_file():
-                return value
-            raise ValueError(
-                f"{value!r} is no library shape ({', '.join([*KNOWN, *NOVEL])}) and no mesh "
-                f"file ({', '.join(MESH_SUFFIXES)}) there is (a relative path is taken from "
-                "the skill file's folder)"
-            )
+            problem = missing_shape(value, skill_dir) if skill_dir is not None else None
+            if problem:
+                raise ValueError(f"{problem} (a relative path is taken from the skill's folder)")
+            return value
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
         from vistac.plugins.touch.library import resolve_shape
