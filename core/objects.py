@@ -24,6 +24,7 @@ import yaml
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from vistac.errors import ConfigError, ConfigIssue, validation_issues
+from vistac.skill import read_yaml
 
 FloatArray = NDArray[np.float64]
 
@@ -429,8 +430,6 @@ def object_from_dict(data: Any, source: str = "") -> ObjectSpec:
 def load_object(path: str | Path) -> ObjectSpec:
     """Read an object YAML file (safe-loaded; a missing or malformed file, or a key given
     twice, is one clear ConfigError line)."""
-    from vistac.skill import read_yaml
-
     return object_from_dict(read_yaml(Path(path)), str(path))
 
 
