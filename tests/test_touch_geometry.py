@@ -243,6 +243,8 @@ def test_a_skill_with_an_object_that_is_not_there_is_refused(tmp_path: Path, obj
         load_skill(skill, registry, [f"components.probe.with.object={obj}"])
     save_mesh(unit_sphere_mesh(0.1), tmp_path / "ball.ply")
     load_skill(skill, registry, ["components.probe.with.object=ball.ply"])  # the skill's folder
+    with pytest.raises(ConfigError, match=r"there is \(did you mean 'chair'\?\)"):
+        load_skill(skill, registry, ["components.probe.with.object=chiar"])
 
 
 def test_random_poses_follow_the_seed(tmp_path: Path) -> None:

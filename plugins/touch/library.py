@@ -16,7 +16,7 @@ from functools import cache
 from pathlib import Path
 
 import numpy as np
-from vistac.errors import DataError
+from vistac.errors import DataError, suggest
 from vistac.plugins.touch.meshes import (
     DEFAULT_SIZE_M,
     MESH_SUFFIXES,
@@ -350,7 +350,7 @@ def missing_shape(spec: str, base: Path | None = None) -> str | None:
         return None
     return (
         f"{spec!r} is no library shape ({', '.join([*KNOWN, *NOVEL])}) and no mesh file "
-        f"({', '.join(MESH_SUFFIXES)}) there is"
+        f"({', '.join(MESH_SUFFIXES)}) there is{suggest(spec, [*KNOWN, *NOVEL])}"
     )
 
 

@@ -54,7 +54,7 @@ class SimTouchProbe(Component):
             skill_dir = (info.context or {}).get("skill_dir")
             problem = missing_shape(value, skill_dir) if skill_dir is not None else None
             if problem:
-                raise ValueError(f"{problem} (a relative path is taken from the skill's folder)")
+                raise ValueError(f"{problem}; a relative path is taken from the skill's folder")
             return value
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
