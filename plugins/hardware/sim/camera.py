@@ -1,19 +1,26 @@
-"""Simulated depth camera: one batched ``mj_multiRay`` call for all pixels.
+"""Simulated depth camera: the table plane in closed form, ``mj_multiRay`` for the rest.
 
 The camera is a free-floating optical frame (the Panda arm's role in the paper): ``move_to``
 places it anywhere. Rays hit every geom, the gripper included (occlusion). Depth is the
 z coordinate in the optical frame (x right, y down, z forward), with Gaussian noise, random
 dropouts and out-of-range pixels set to NaN.
+
+Only the pixels inside the projected bounding box of a geom other than the table are ray cast
+(one batched ``mj_multiRay`` call); every other pixel can only see the table plane, which is
+intersected in closed form as MuJoCo's ``ray_plane`` does, so the image is the same.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import Field
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
@@ -21,8 +28,44 @@ from vistac.plugins.hardware.sim.arm import find_world
 from vistac.types import RGBD, CameraIntrinsics, FloatArray, PixelWindow, Viewpoint
 
 _WORLD_UP = np.array([0.0, 0.0, 1.0])
-_MIN_RAYS_PER_THREAD = 8192
+_MIN_RAYS_PER_THREAD = 4096
+"""Fewer rays are cast by the caller; more go to the pool (while the caller draws the noise)."""
 _CACHED_GEOMETRIES = 8
+_TABLE_GEOM = "table"
+"""The plane at z = 0, axis-aligned and centred at the origin (see :mod:`.mjcf`)."""
+_MJ_MINVAL = 1e-15
+"""MuJoCo's ``mjMINVAL``: a ray whose world z is above minus this misses a plane."""
+_TABLE_EDGE_MARGIN_M = 1e-9
+"""Image corners this close to the table's edge send the whole image through the edge test."""
+_BOX_MARGIN_PX = 1
+"""Pixels ray cast beyond each geom's projected bounding box (for rounding)."""
+_MIN_BOX_DEPTH_M = 1e-6
+"""A bounding box reaching closer to the image plane than this may be seen anywhere."""
+_BOX_SIGNS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))
+"""The eight corners of a unit box: [8, 3]."""
+
+IntArray = NDArray[np.intp]
+
+
+@dataclass(frozen=True)
+class PixelRays:
+    """Unit-depth pixel rays of one image geometry: pixel (u, v) looks along
+    (``x_per_z[u]``, ``y_per_z[v]``, 1) in the camera frame.
+
+    x_per_z: [W]; y_per_z: [H]; longest: the length of the longest (a corner's) ray.
+    """
+
+    x_per_z: FloatArray
+    y_per_z: FloatArray
+    longest: float
+
+    @classmethod
+    def of(cls, intrinsics: CameraIntrinsics) -> PixelRays:
+        """The rays of :meth:`CameraIntrinsics.pixel_rays`, separated by axis."""
+        x_per_z = (np.arange(intrinsics.width, dtype=np.float64) - intrinsics.cx) / intrinsics.fx
+        y_per_z = (np.arange(intrinsics.height, dtype=np.float64) - intrinsics.cy) / intrinsics.fy
+        longest = math.sqrt(np.max(x_per_z**2) + np.max(y_per_z**2) + 1.0)
+        return cls(x_per_z, y_per_z, longest)
 
 
 def look_at(view: Viewpoint) -> FloatArray:
@@ -74,7 +117,15 @@ class SimDepthCamera(Component):
             config.width, config.height, math.radians(config.vertical_fov_deg)
         )
         self._rng = ctx.rng("camera")
-        self._rays: dict[CameraIntrinsics, FloatArray] = {}
+        self._rays: dict[CameraIntrinsics, PixelRays] = {}
+        model = self.world.model
+        table = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, _TABLE_GEOM)
+        self._table_half_size_m = model.geom_size[table, :2].copy()
+        self._geoms = np.flatnonzero(np.arange(model.ngeom) != table)
+        """The geoms other than the table: [G]."""
+        aabb = model.geom_aabb[self._geoms]
+        self._box_corners_m = aabb[:, None, :3] + _BOX_SIGNS * aabb[:, None, 3:]
+        """Bounding box corners [G, 8, 3] in each geom's frame."""
         self._pool = ThreadPoolExecutor(config.ray_threads, thread_name_prefix="raycast")
         self.move_to(
             Viewpoint.on_hemisphere(
@@ -91,12 +142,12 @@ class SimDepthCamera(Component):
     def move_to(self, view: Viewpoint) -> None:
         self.world_from_camera = look_at(view)
 
-    def _pixel_rays(self, intrinsics: CameraIntrinsics) -> FloatArray:
-        """Unit-depth rays [H*W, 3] in the camera frame, cached per image geometry."""
+    def _pixel_rays(self, intrinsics: CameraIntrinsics) -> PixelRays:
+        """The rays of ``intrinsics``' pixels, cached per image geometry."""
         if intrinsics not in self._rays:
             if len(self._rays) >= _CACHED_GEOMETRIES:
                 self._rays.clear()
-            self._rays[intrinsics] = np.ascontiguousarray(intrinsics.pixel_rays().reshape(-1, 3))
+            self._rays[intrinsics] = PixelRays.of(intrinsics)
         return self._rays[intrinsics]
 
     def capture(
@@ -108,29 +159,109 @@ class SimDepthCamera(Component):
         intrinsics = self.intrinsics if window is None else self.intrinsics.cropped(window)
         if width is not None or height is not None:
             intrinsics = intrinsics.scaled(width or intrinsics.width, height or intrinsics.height)
-        depth_m = self._ray_depth(intrinsics).reshape(intrinsics.height, intrinsics.width)
+        finish_depth = self._start_ray_depth(intrinsics)
+        noise_m, dropped = self._draw_corruption(intrinsics)  # while the rays are cast
         return RGBD(
-            depth_m=self._corrupt(depth_m),
+            depth_m=self._corrupt(finish_depth(), noise_m, dropped),
             intrinsics=intrinsics,
             world_from_camera=self.world_from_camera.copy(),
             timestamp_s=self.world.time_s,
         )
 
-    def _ray_depth(self, intrinsics: CameraIntrinsics) -> FloatArray:
-        """Noise-free optical-frame depth per pixel: [H*W], NaN where nothing is hit.
+    def _start_ray_depth(self, intrinsics: CameraIntrinsics) -> Callable[[], FloatArray]:
+        """Start the ray casting; the function returned waits for it and returns the
+        noise-free optical-frame depth per pixel: [H, W], NaN where nothing is hit.
 
         The rays have unit z in the camera frame, and ``mj_multiRay`` measures distance in
         multiples of the ray vector's length, so the distance is the depth.
         """
-        rays_camera = self._pixel_rays(intrinsics)
-        count = len(rays_camera)
-        rays_world = np.ascontiguousarray(rays_camera @ self.world_from_camera[:3, :3].T)
-        geom_id = np.empty(count, dtype=np.int32)
-        depth_m = np.empty(count)
-        origin = np.ascontiguousarray(self.world_from_camera[:3, 3])
+        rays = self._pixel_rays(intrinsics)
+        rotation, origin = self.world_from_camera[:3, :3], self.world_from_camera[:3, 3]
+        along_u = rotation[:, :1] * rays.x_per_z
+        along_v = rotation[:, 1:2] * rays.y_per_z + rotation[:, 2:]
         # mj_multiRay cuts off at a straight-line distance: far enough for the longest ray
         # to reach the depth range (``_corrupt`` applies the range to the depth itself)
-        cutoff = self.config.max_range_m * float(np.linalg.norm(rays_camera, axis=1).max())
+        cutoff = self.config.max_range_m * rays.longest
+        depth_m = self._table_depth(origin, along_u, along_v)
+        rows, columns = self._pixels_near_geoms(intrinsics)
+        rays_world = (along_v[:, rows] + along_u[:, columns]).T.copy()  # [M, 3]
+        finish_cast = self._start_cast(origin, rays_world, cutoff)
+
+        def finish() -> FloatArray:
+            depth_m[rows, columns] = finish_cast()
+            return depth_m
+
+        return finish
+
+    def _table_depth(
+        self, origin: FloatArray, along_u: FloatArray, along_v: FloatArray
+    ) -> FloatArray:
+        """Depth [H, W] of the table plane, NaN where a ray misses it, computed as MuJoCo's
+        ``ray_plane`` does. The world ray of pixel (u, v) is ``along_v[:, v] + along_u[:, u]``
+        (``along_u`` [3, W], ``along_v`` [3, H]); ``origin`` [3] is the camera centre."""
+        depth_m = np.full((along_v.shape[1], along_u.shape[1]), np.nan)
+        if origin[2] < 0:  # the plane faces up (and mj_multiRay's cutoff never drops it)
+            return depth_m
+        ray_z = np.add.outer(along_v[2], along_u[2])
+        if self._sees_only_table(origin, along_u, along_v):
+            return np.divide(-origin[2], ray_z, out=depth_m)
+        np.divide(-origin[2], ray_z, out=depth_m, where=ray_z < -_MJ_MINVAL)
+        for axis in range(2):
+            hit_m = np.add.outer(along_v[axis], along_u[axis])
+            hit_m *= depth_m
+            hit_m += origin[axis]
+            depth_m[~(np.abs(hit_m) <= self._table_half_size_m[axis])] = np.nan
+        return depth_m
+
+    def _sees_only_table(
+        self, origin: FloatArray, along_u: FloatArray, along_v: FloatArray
+    ) -> bool:
+        """Whether every pixel's ray meets the table inside its edges: true when the four
+        image corners' rays do (the image of the table is convex)."""
+        x_m, y_m, z_m = origin.tolist()
+        half_x_m, half_y_m = (self._table_half_size_m - _TABLE_EDGE_MARGIN_M).tolist()
+        for ray_u in along_u[:, [0, -1]].T.tolist():
+            for ray_v in along_v[:, [0, -1]].T.tolist():
+                ray_x, ray_y, ray_z = (a + b for a, b in zip(ray_v, ray_u, strict=True))
+                if ray_z >= -_MJ_MINVAL:
+                    return False
+                depth = -z_m / ray_z
+                if abs(x_m + depth * ray_x) > half_x_m or abs(y_m + depth * ray_y) > half_y_m:
+                    return False
+        return True
+
+    def _pixels_near_geoms(self, intrinsics: CameraIntrinsics) -> tuple[IntArray, IntArray]:
+        """(rows [M], columns [M]) of the pixels whose rays may meet a geom other than the
+        table: those in a geom's projected bounding box (every pixel when a box reaches
+        behind the image plane)."""
+        data, geoms = self.world.data, self._geoms
+        rotation, origin = self.world_from_camera[:3, :3], self.world_from_camera[:3, 3]
+        camera_from_geoms = data.geom_xmat[geoms].reshape(-1, 3, 3).transpose(0, 2, 1) @ rotation
+        offsets_m = (data.geom_xpos[geoms] - origin) @ rotation  # [G, 3]
+        corners = self._box_corners_m @ camera_from_geoms + offsets_m[:, None]  # [G, 8, 3]
+        corners = corners[corners[..., 2].max(axis=1) >= 0]  # not behind the camera
+        width, height = intrinsics.width, intrinsics.height
+        near = np.zeros((height, width), dtype=bool)
+        if corners.size and corners[..., 2].min() < _MIN_BOX_DEPTH_M:
+            near[:] = True
+        else:
+            uv = corners[..., :2] / corners[..., 2:] * (intrinsics.fx, intrinsics.fy)
+            uv += (intrinsics.cx, intrinsics.cy)  # [G', 8, 2]
+            bounds = np.concatenate([uv.min(axis=1), uv.max(axis=1)], axis=1)  # [G', 4]
+            for u_low, v_low, u_high, v_high in bounds.tolist():
+                near[_pixel_span(v_low, v_high, height), _pixel_span(u_low, u_high, width)] = True
+        rows, columns = np.nonzero(near)
+        return rows, columns
+
+    def _start_cast(
+        self, origin: FloatArray, rays_world: FloatArray, cutoff: float
+    ) -> Callable[[], FloatArray]:
+        """Start ``mj_multiRay`` on ``rays_world`` [M, 3]: in up to ``ray_threads`` pool threads
+        for many rays, in the calling thread for few; the function returned waits for it and
+        returns the depth [M], NaN where nothing is hit."""
+        count = len(rays_world)
+        geom_id = np.empty(count, dtype=np.int32)
+        depth_m = np.empty(count)
 
         def cast(chunk: slice) -> None:
             mujoco.mj_multiRay(
@@ -148,20 +279,45 @@ class SimDepthCamera(Component):
                 cutoff,
             )
 
-        bounds = np.linspace(0, count, self.config.ray_threads + 1).astype(int)
-        chunks = [slice(int(a), int(b)) for a, b in itertools.pairwise(bounds)]
-        if len(chunks) == 1 or count < _MIN_RAYS_PER_THREAD * len(chunks):
+        threads = min(self.config.ray_threads, count // _MIN_RAYS_PER_THREAD)
+        if threads == 0:
             cast(slice(0, count))
-        else:  # mj_multiRay releases the GIL: the chunks run in parallel
-            list(self._pool.map(cast, chunks))
-        depth_m[geom_id < 0] = np.nan
+        bounds = np.linspace(0, count, threads + 1).astype(int).tolist() if threads else []
+        # mj_multiRay releases the GIL: the chunks run in parallel, and with the caller
+        casts = [self._pool.submit(cast, slice(a, b)) for a, b in itertools.pairwise(bounds)]
+
+        def finish() -> FloatArray:
+            for done in casts:
+                done.result()
+            depth_m[geom_id < 0] = np.nan
+            return depth_m
+
+        return finish
+
+    def _draw_corruption(
+        self, intrinsics: CameraIntrinsics
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """The random part of a frame's corruption: (depth noise [H, W] in m, dropped
+        pixels [H, W])."""
+        shape = (intrinsics.height, intrinsics.width)
+        noise_m = self._rng.standard_normal(shape, dtype=np.float32)
+        noise_m *= self.config.depth_noise_m
+        return noise_m, self._rng.random(shape) < self.config.dropout_prob
+
+    def _corrupt(
+        self, depth_m: FloatArray, noise_m: NDArray[np.float32], dropped: NDArray[np.bool_]
+    ) -> FloatArray:
+        """Add the noise, drop pixels and apply the range limits, in place: [H, W]."""
+        depth_m += noise_m
+        invalid = dropped
+        invalid |= depth_m < self.config.min_range_m
+        invalid |= depth_m > self.config.max_range_m
+        depth_m[invalid] = np.nan
         return depth_m
 
-    def _corrupt(self, depth_m: FloatArray) -> FloatArray:
-        """Add Gaussian noise, drop pixels and apply the range limits: [H, W] -> [H, W]."""
-        noise = self._rng.standard_normal(depth_m.shape, dtype=np.float32)
-        noisy = depth_m + self.config.depth_noise_m * noise
-        dropped = self._rng.random(depth_m.shape) < self.config.dropout_prob
-        outside = (noisy < self.config.min_range_m) | (noisy > self.config.max_range_m)
-        noisy[dropped | outside] = np.nan
-        return noisy
+
+def _pixel_span(low: float, high: float, size: int) -> slice:
+    """The pixels of an image axis of ``size`` covering the coordinates ``low..high``, with
+    a margin (empty when they are beside the image)."""
+    start = max(math.floor(low) - _BOX_MARGIN_PX, 0)
+    return slice(start, max(min(math.ceil(high) + _BOX_MARGIN_PX + 1, size), start))
