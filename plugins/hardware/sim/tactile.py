@@ -15,17 +15,18 @@ def pad_forces(model: mujoco.MjModel, data: mujoco.MjData, pads: np.ndarray) -> 
     [P, 3] (world frame, N)."""
     forces = np.zeros((len(pads), 3))
     wrench = np.zeros(6)
-    geoms = data.contact.geom[: data.ncon]
-    frames = data.contact.frame[: data.ncon]
-    for i in np.flatnonzero(np.isin(geoms, pads).any(axis=1)):
-        mujoco.mj_contactForce(model, data, int(i), wrench)
+    pad_index = {geom: k for k, geom in enumerate(pads.tolist())}
+    frames = data.contact.frame
+    for i, (geom1, geom2) in enumerate(data.contact.geom[: data.ncon].tolist()):
+        if geom1 not in pad_index and geom2 not in pad_index:
+            continue
+        mujoco.mj_contactForce(model, data, i, wrench)
         # The contact force acts on geom2 along the frame (normal from geom1 to geom2).
         on_geom2 = frames[i].reshape(3, 3).T @ wrench[:3]
-        geom1, geom2 = geoms[i]
-        if geom2 in pads:
-            forces[int(np.flatnonzero(pads == geom2)[0])] += on_geom2
-        if geom1 in pads:
-            forces[int(np.flatnonzero(pads == geom1)[0])] -= on_geom2
+        if geom2 in pad_index:
+            forces[pad_index[geom2]] += on_geom2
+        if geom1 in pad_index:
+            forces[pad_index[geom1]] -= on_geom2
     return forces
 
 
