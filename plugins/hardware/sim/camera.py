@@ -199,12 +199,12 @@ class SimDepthCamera(Component):
         """Depth [H, W] of the table plane, NaN where a ray misses it, computed as MuJoCo's
         ``ray_plane`` does. The world ray of pixel (u, v) is ``along_v[:, v] + along_u[:, u]``
         (``along_u`` [3, W], ``along_v`` [3, H]); ``origin`` [3] is the camera centre."""
-        depth_m = np.full((along_v.shape[1], along_u.shape[1]), np.nan)
+        ray_z = np.add.outer(along_v[2], along_u[2])
+        if origin[2] >= 0 and self._sees_only_table(origin, along_u, along_v):
+            return np.divide(-origin[2], ray_z, out=ray_z)
+        depth_m = np.full_like(ray_z, np.nan)
         if origin[2] < 0:  # the plane faces up (and mj_multiRay's cutoff never drops it)
             return depth_m
-        ray_z = np.add.outer(along_v[2], along_u[2])
-        if self._sees_only_table(origin, along_u, along_v):
-            return np.divide(-origin[2], ray_z, out=depth_m)
         np.divide(-origin[2], ray_z, out=depth_m, where=ray_z < -_MJ_MINVAL)
         for axis in range(2):
             hit_m = np.add.outer(along_v[axis], along_u[axis])
