@@ -16,6 +16,7 @@ from vistac.plugins.touch.library import known_class
 from vistac.plugins.touch.meshes import apply_pose, save_mesh
 from vistac.plugins.touch.metrics import two_way_hausdorff
 from vistac.plugins.touch.pf import (
+    ClassGrids,
     Particles,
     TouchParticleFilter,
     contact_log_likelihood,
@@ -47,6 +48,24 @@ def test_stochastic_universal_sampling_keeps_heavy_particles() -> None:
     assert np.bincount(index, minlength=4).tolist() == [4, 2, 1, 1]
     index = stochastic_universal_sampling(np.array([0.0, 1.0, 0.0]), 5, np.random.default_rng(1))
     assert index.tolist() == [1] * 5
+
+
+def test_the_stacked_class_grids_give_each_class_grid_values() -> None:
+    """Points of particles of mixed classes, inside and outside the grid boxes, get the values
+    of their own class's GridSDF: distance (to float32 rounding) and unit normals."""
+    meshes = [known_class(name) for name in ("mug", "guitar", "cone")]
+    grids = ClassGrids([mesh.grid_sdf for mesh in meshes])
+    rng = np.random.default_rng(3)
+    cls = np.array([2, 0, 1, 1, 0])
+    local = rng.uniform(-0.2, 0.2, (len(cls), 7, 3))  # [N, K, 3], some outside the boxes
+    distance, normals = grids(cls, local)
+    for row, index in enumerate(cls):
+        expected_distance, expected_normals = meshes[index].grid_sdf(local[row])
+        np.testing.assert_allclose(distance[row], expected_distance, atol=1e-8)
+        np.testing.assert_allclose(normals[row], expected_normals, atol=1e-6)
+        np.testing.assert_allclose(
+            grids.distance(cls, local)[row], meshes[index].grid_sdf.distance(local[row]), atol=1e-8
+        )
 
 
 def surface_touches(name: str, pose: np.ndarray, count: int, seed: int) -> list[tuple]:

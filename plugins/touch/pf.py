@@ -9,8 +9,9 @@ contacts (Drost 2010 hash tables over each class's Poisson-disk samples), weigh 
 approximation of eq. 25-27, and report the class probabilities, the maximum-likelihood
 (class, pose) and the known/novel decision of eq. 28.
 
-Particles of one class are evaluated together through that class's signed distance grid in
-the object frame: observations are moved by each particle's inverse pose.
+Observations are moved into each particle's object frame by its inverse pose and looked up in
+the signed distance grids of all classes at once (``ClassGrids``), and the proposals of all
+classes are aligned and weighed together.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from typing import Any
 
 import numpy as np
 from pydantic import Field, field_validator
+from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 from scipy.special import log_ndtr
 from vistac.component import Component, ComponentConfig, ComponentContext
@@ -70,6 +72,58 @@ class ShapeClass:
     table: PpfTable
     surface: FloatArray
     surface_normals: FloatArray
+
+
+class ClassGrids:
+    """The signed distance grids (``GridSDF``) of all classes side by side along x, one volume
+    per channel (distance, normal x, y, z), so that the points of particles of mixed classes are
+    interpolated in one ``map_coordinates`` call per channel. Each class's points are clamped to
+    its own grid box, so the values are its ``GridSDF``'s (to rounding in the last bits of the
+    grid coordinates, which are shifted by the class's whole-cell offset along x)."""
+
+    def __init__(self, grids: list[GridSDF]) -> None:
+        shapes = np.array([grid.shape for grid in grids])  # [C, 3] cells per axis
+        self._x_offset = np.r_[0, np.cumsum(shapes[:-1, 0])].astype(np.float64)  # [C] cells
+        self._top = (shapes - 1).astype(np.float64)  # [C, 3] last grid coordinate
+        self._origin_m = np.array([grid.origin_m for grid in grids])  # [C, 3]
+        self._step_m = np.array([grid.step_m for grid in grids])  # [C]
+        volumes = np.zeros((4, shapes[:, 0].sum(), *shapes[:, 1:].max(axis=0)), np.float32)
+        for grid, start, (x, y, z) in zip(grids, self._x_offset.astype(int), shapes, strict=True):
+            volumes[:, start : start + x, :y, :z] = grid._volumes
+        self._volumes = volumes
+
+    def _coordinates(self, cls: Any, local_m: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Stacked grid coordinates [3, N * K] of points local_m [N, K, 3] (object frame of
+        class cls [N]), clamped to their class's grid, and each point's distance to that grid
+        box [N, K] in m."""
+        step_m = self._step_m[cls][:, None, None]
+        scaled = (local_m - self._origin_m[cls][:, None]) / step_m
+        clamped = np.clip(scaled, 0.0, self._top[cls][:, None])
+        outside_m = np.linalg.norm(scaled - clamped, axis=-1) * step_m[..., 0]
+        coordinates = np.ascontiguousarray(clamped.reshape(-1, 3).T)
+        coordinates[0] += np.repeat(self._x_offset[cls], local_m.shape[1])
+        return coordinates, outside_m
+
+    def _interpolate(self, channel: int, coordinates: FloatArray) -> FloatArray:
+        values = map_coordinates(
+            self._volumes[channel], coordinates, order=1, mode="nearest", prefilter=False
+        )
+        return np.asarray(values, dtype=np.float64)
+
+    def distance(self, cls: Any, local_m: FloatArray) -> FloatArray:
+        """Signed distance [N, K] in m of points local_m [N, K, 3] in the frame of class
+        cls [N] (as ``GridSDF.distance``)."""
+        coordinates, outside_m = self._coordinates(cls, local_m)
+        return self._interpolate(0, coordinates).reshape(outside_m.shape) + outside_m
+
+    def __call__(self, cls: Any, local_m: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Signed distance [N, K] in m and unit outward normals [N, K, 3] of points local_m
+        [N, K, 3] in the frame of class cls [N] (as ``GridSDF.__call__``)."""
+        coordinates, outside_m = self._coordinates(cls, local_m)
+        normals = np.stack([self._interpolate(axis, coordinates) for axis in (1, 2, 3)], -1)
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        distance = self._interpolate(0, coordinates).reshape(outside_m.shape) + outside_m
+        return distance, normals.reshape(*local_m.shape)
 
 
 @dataclass
@@ -184,6 +238,7 @@ class TouchParticleFilter(Component):
         self.classes = [self._build_class(spec, quantisation) for spec in config.classes]
         self.build_s = time.perf_counter() - start_s
         self.table_build_s = sum(c.table.build_s for c in self.classes)
+        self._grids = ClassGrids([c.grid for c in self.classes])
         self.particles = Particles.empty()
         self.contacts = np.zeros((0, 3))
         self.normals = np.zeros((0, 3))
@@ -218,25 +273,18 @@ class TouchParticleFilter(Component):
     ) -> FloatArray:
         """Per particle and point [N, K]: contact log likelihoods (eq. 16) when ``normals``
         [K, 3] is given, else negative-information log likelihoods (eq. 18)."""
-        result = np.zeros((len(particles), len(points)))
-        if len(points) == 0:
-            return result
-        for index in np.unique(particles.cls):
-            rows = np.flatnonzero(particles.cls == index)
-            rotation, translation = particles.rotation[rows], particles.translation[rows]
-            local = (points[None] - translation[:, None]) @ rotation  # [n, K, 3]
-            grid = self.classes[index].grid
-            if normals is None:
-                distance = grid.distance(local)
-                result[rows] = miss_log_likelihood(distance, self.config.sigma_distance_m)
-                continue
-            distance, predicted = grid(local)
-            observed = normals @ rotation  # [n, K, 3]
-            error = np.linalg.norm(observed - predicted, axis=-1)
-            result[rows] = contact_log_likelihood(
-                distance, error, self.config.sigma_distance_m, self.config.sigma_normal
-            )
-        return result
+        if len(points) == 0 or len(particles) == 0:
+            return np.zeros((len(particles), len(points)))
+        rotation = particles.rotation
+        local = (points[None] - particles.translation[:, None]) @ rotation  # [N, K, 3]
+        if normals is None:
+            distance = self._grids.distance(particles.cls, local)
+            return miss_log_likelihood(distance, self.config.sigma_distance_m)
+        distance, predicted = self._grids(particles.cls, local)
+        error = np.linalg.norm(normals @ rotation - predicted, axis=-1)
+        return contact_log_likelihood(
+            distance, error, self.config.sigma_distance_m, self.config.sigma_normal
+        )
 
     def _all_data(self, particles: Particles) -> tuple[FloatArray, FloatArray]:
         """Per particle: contact log likelihoods [N, K] and free-space log likelihoods [N, J]."""
@@ -365,45 +413,60 @@ class TouchParticleFilter(Component):
         keys = self.classes[0].table.quantisation.keys(
             point_pair_features(points[first], normals[first], points[second], normals[second])
         )
-        subset = np.r_[partners, newest]
-        proposals = [
-            self._class_proposals(i, keys, first, second, subset) for i in range(len(self.classes))
-        ]
-        new = [p for p in proposals if p is not None]
-        if new:
-            for particles in new:
-                self.particles = self.particles.concat(particles)
-            self.particles.log_weight -= self.particles.log_weight.max()
+        pairs = [self._class_pairs(shape, keys) for shape in self.classes]
+        counts = np.array([len(query) for _, _, query in pairs])
+        if counts.sum() == 0:
+            return
+        new = self._aligned(pairs, counts, first, second)
+        self._weigh_proposals(new, counts, np.r_[partners, newest])
+        self.particles = self.particles.concat(new)
+        self.particles.log_weight -= self.particles.log_weight.max()
 
-    def _class_proposals(
-        self, index: int, keys: Any, first: Any, second: Any, subset: Any
-    ) -> Particles | None:
-        """New particles of class ``index`` from matching model pairs, weighted by eq. 27."""
-        shape = self.classes[index]
+    def _class_pairs(self, shape: ShapeClass, keys: Any) -> tuple[Any, Any, Any]:
+        """Model pairs of ``shape`` matching the query keys [Q], at most
+        ``proposals_per_class`` of them: (first model point [P], second [P], query [P])."""
         model_first, model_second, query = shape.table.lookup(keys)
-        if len(query) == 0:
-            return None
         if len(query) > self.config.proposals_per_class:
             keep = self._rng.choice(len(query), self.config.proposals_per_class, replace=False)
             model_first, model_second, query = model_first[keep], model_second[keep], query[keep]
-        m_points, m_normals = shape.table.points, shape.table.normals
+        return model_first, model_second, query
+
+    def _aligned(
+        self, pairs: list[tuple[Any, Any, Any]], counts: Any, first: Any, second: Any
+    ) -> Particles:
+        """New particles [sum(counts)], class by class: each class's model pairs (``pairs``,
+        counts [C] of them) aligned onto the contact pairs (first [Q], second [Q]) they match."""
+        tables = [shape.table for shape in self.classes]
+        first_model = [(t, f) for t, (f, _, _) in zip(tables, pairs, strict=True)]
+        second_model = [(t, s) for t, (_, s, _) in zip(tables, pairs, strict=True)]
+        query = np.concatenate([q for _, _, q in pairs])
         poses = align_pairs(
-            m_points[model_first],
-            m_normals[model_first],
-            m_points[model_second],
+            np.concatenate([t.points[f] for t, f in first_model]),
+            np.concatenate([t.normals[f] for t, f in first_model]),
+            np.concatenate([t.points[s] for t, s in second_model]),
             self.contacts[first[query]],
             self.normals[first[query]],
             self.contacts[second[query]],
         )
-        cls, count = np.full(len(poses), index), len(poses)
-        new = Particles(cls, poses[:, :3, :3], poses[:, :3, 3], np.zeros(count), np.zeros(count))
+        cls, count = np.repeat(np.arange(len(self.classes)), counts), len(poses)
+        return Particles(cls, poses[:, :3, :3], poses[:, :3, 3], np.zeros(count), np.zeros(count))
+
+    def _weigh_proposals(self, new: Particles, counts: Any, subset: Any) -> None:
+        """Eq. 27 weights of new particles (counts [C] per class, in class order): each
+        class's best on the contacts ``subset`` is weighed on all data, the others relative
+        to it on the subset."""
         subset_ll = self.log_likelihoods(new, self.contacts[subset], self.normals[subset]).sum(1)
-        best = int(np.argmax(subset_ll))
-        contact_ll, miss_ll = self._all_data(new.take([best]))
-        best_total = float(contact_ll.sum() + miss_ll.sum())
+        ends = np.cumsum(counts)
+        proposed = np.flatnonzero(counts)
+        best = np.array([ends[i] - counts[i] + np.argmax(subset_ll[ends[i] - counts[i] : ends[i]])
+                         for i in proposed])  # fmt: skip
+        contact_ll, miss_ll = self._all_data(new.take(best))
+        best_total = np.zeros(len(counts))
+        best_total[proposed] = contact_ll.sum(axis=1) + miss_ll.sum(axis=1)
+        best_subset = np.zeros(len(counts))
+        best_subset[proposed] = subset_ll[best]
         reference = self._reference_log_weight()
-        new.log_weight = reference + best_total + (subset_ll - subset_ll[best])
-        return new
+        new.log_weight = reference + best_total[new.cls] + (subset_ll - best_subset[new.cls])
 
     def _reference_log_weight(self) -> float:
         """log(w_mle) - log L(all data | x_mle) of eq. 27 (0 before there is an MLE)."""
