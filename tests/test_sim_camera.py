@@ -71,3 +71,20 @@ def test_same_seed_gives_the_same_frames(tmp_path: Path) -> None:
         frames.append([camera.capture(*size).depth_m for size in ((320, 240), (64, 64))])
     for first, second in zip(*frames, strict=True):
         np.testing.assert_array_equal(first, second)
+
+
+def test_depth_follows_the_camera_and_the_gripper(tmp_path: Path) -> None:
+    """What is kept between captures (the rays and the table of a pose) does not keep the
+    gripper or an earlier pose in the image."""
+    ctx = sim_setup(tmp_path, box_object(), gripper_start=(0.0, 0.3, 0.1, 0.0))
+    camera = add_camera(ctx, width=80, height=60, **EXACT)
+    views = [VIEWS["above the box"], VIEWS["gripper from the side"], VIEWS["above the box"]]
+    frames = []
+    for eye, target in views:
+        camera.move_to(Viewpoint(np.array(eye), np.array(target)))
+        for _ in range(2):
+            frames.append(camera.capture().depth_m)
+            np.testing.assert_allclose(frames[-1], full_ray_cast(camera), rtol=0, atol=1e-12)
+            ctx.find("arm").command_velocity(np.array([0.0, 0.05, 0.0, 0.0]))
+            ctx.find("world").step(0.5)
+    assert not np.array_equal(frames[2], frames[3], equal_nan=True), "the gripper moved"

@@ -30,7 +30,8 @@ from vistac.types import RGBD, CameraIntrinsics, FloatArray, PixelWindow, Viewpo
 _WORLD_UP = np.array([0.0, 0.0, 1.0])
 _MIN_RAYS_PER_THREAD = 4096
 """Fewer rays are cast by the caller; more go to the pool (while the caller draws the noise)."""
-_CACHED_GEOMETRIES = 8
+_CACHED_VIEWS = 8
+"""Image geometries and camera poses whose rays and table depth are kept."""
 _TABLE_GEOM = "table"
 """The plane at z = 0, axis-aligned and centred at the origin (see :mod:`.mjcf`)."""
 _MJ_MINVAL = 1e-15
@@ -48,24 +49,18 @@ IntArray = NDArray[np.intp]
 
 
 @dataclass(frozen=True)
-class PixelRays:
-    """Unit-depth pixel rays of one image geometry: pixel (u, v) looks along
-    (``x_per_z[u]``, ``y_per_z[v]``, 1) in the camera frame.
+class _View:
+    """One image geometry seen from one camera pose: the pixels' world rays and the table.
 
-    x_per_z: [W]; y_per_z: [H]; longest: the length of the longest (a corner's) ray.
+    The world ray of pixel (u, v), scaled to unit depth, is ``along_v[:, v] + along_u[:, u]``
+    (``along_u`` [3, W], ``along_v`` [3, H]); ``table_depth_m`` [H, W] (read-only) is the
+    depth of the table, NaN where a ray misses it; ``cutoff_m`` is ``mj_multiRay``'s cutoff.
     """
 
-    x_per_z: FloatArray
-    y_per_z: FloatArray
-    longest: float
-
-    @classmethod
-    def of(cls, intrinsics: CameraIntrinsics) -> PixelRays:
-        """The rays of :meth:`CameraIntrinsics.pixel_rays`, separated by axis."""
-        x_per_z = (np.arange(intrinsics.width, dtype=np.float64) - intrinsics.cx) / intrinsics.fx
-        y_per_z = (np.arange(intrinsics.height, dtype=np.float64) - intrinsics.cy) / intrinsics.fy
-        longest = math.sqrt(np.max(x_per_z**2) + np.max(y_per_z**2) + 1.0)
-        return cls(x_per_z, y_per_z, longest)
+    along_u: FloatArray
+    along_v: FloatArray
+    table_depth_m: FloatArray
+    cutoff_m: float
 
 
 def look_at(view: Viewpoint) -> FloatArray:
@@ -117,7 +112,7 @@ class SimDepthCamera(Component):
             config.width, config.height, math.radians(config.vertical_fov_deg)
         )
         self._rng = ctx.rng("camera")
-        self._rays: dict[CameraIntrinsics, PixelRays] = {}
+        self._views: dict[tuple[CameraIntrinsics, bytes], _View] = {}
         model = self.world.model
         table = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, _TABLE_GEOM)
         self._table_half_size_m = model.geom_size[table, :2].copy()
@@ -142,13 +137,30 @@ class SimDepthCamera(Component):
     def move_to(self, view: Viewpoint) -> None:
         self.world_from_camera = look_at(view)
 
-    def _pixel_rays(self, intrinsics: CameraIntrinsics) -> PixelRays:
-        """The rays of ``intrinsics``' pixels, cached per image geometry."""
-        if intrinsics not in self._rays:
-            if len(self._rays) >= _CACHED_GEOMETRIES:
-                self._rays.clear()
-            self._rays[intrinsics] = PixelRays.of(intrinsics)
-        return self._rays[intrinsics]
+    def _view(self, intrinsics: CameraIntrinsics) -> _View:
+        """The rays and the table of ``intrinsics`` from the current pose, cached (the table
+        does not move)."""
+        key = (intrinsics, self.world_from_camera.tobytes())
+        if key not in self._views:
+            if len(self._views) >= _CACHED_VIEWS:
+                self._views.clear()
+            self._views[key] = self._new_view(intrinsics)
+        return self._views[key]
+
+    def _new_view(self, intrinsics: CameraIntrinsics) -> _View:
+        pixel_u = np.arange(intrinsics.width, dtype=np.float64)
+        pixel_v = np.arange(intrinsics.height, dtype=np.float64)
+        x_per_z = (pixel_u - intrinsics.cx) / intrinsics.fx  # as CameraIntrinsics.pixel_rays
+        y_per_z = (pixel_v - intrinsics.cy) / intrinsics.fy
+        rotation, origin = self.world_from_camera[:3, :3], self.world_from_camera[:3, 3]
+        along_u = rotation[:, :1] * x_per_z
+        along_v = rotation[:, 1:2] * y_per_z + rotation[:, 2:]
+        table_depth_m = self._table_depth(origin, along_u, along_v)
+        table_depth_m.flags.writeable = False
+        # mj_multiRay cuts off at a straight-line distance: far enough for the longest ray
+        # to reach the depth range (``_corrupt`` applies the range to the depth itself)
+        longest = math.sqrt(np.max(x_per_z**2) + np.max(y_per_z**2) + 1.0)
+        return _View(along_u, along_v, table_depth_m, self.config.max_range_m * longest)
 
     def capture(
         self, width: int | None = None, height: int | None = None, window: PixelWindow | None = None
@@ -175,17 +187,11 @@ class SimDepthCamera(Component):
         The rays have unit z in the camera frame, and ``mj_multiRay`` measures distance in
         multiples of the ray vector's length, so the distance is the depth.
         """
-        rays = self._pixel_rays(intrinsics)
-        rotation, origin = self.world_from_camera[:3, :3], self.world_from_camera[:3, 3]
-        along_u = rotation[:, :1] * rays.x_per_z
-        along_v = rotation[:, 1:2] * rays.y_per_z + rotation[:, 2:]
-        # mj_multiRay cuts off at a straight-line distance: far enough for the longest ray
-        # to reach the depth range (``_corrupt`` applies the range to the depth itself)
-        cutoff = self.config.max_range_m * rays.longest
-        depth_m = self._table_depth(origin, along_u, along_v)
+        view = self._view(intrinsics)
+        depth_m = view.table_depth_m.copy()
         rows, columns = self._pixels_near_geoms(intrinsics)
-        rays_world = (along_v[:, rows] + along_u[:, columns]).T.copy()  # [M, 3]
-        finish_cast = self._start_cast(origin, rays_world, cutoff)
+        rays_world = (view.along_v[:, rows] + view.along_u[:, columns]).T.copy()  # [M, 3]
+        finish_cast = self._start_cast(self.world_from_camera[:3, 3], rays_world, view.cutoff_m)
 
         def finish() -> FloatArray:
             depth_m[rows, columns] = finish_cast()
@@ -197,8 +203,7 @@ class SimDepthCamera(Component):
         self, origin: FloatArray, along_u: FloatArray, along_v: FloatArray
     ) -> FloatArray:
         """Depth [H, W] of the table plane, NaN where a ray misses it, computed as MuJoCo's
-        ``ray_plane`` does. The world ray of pixel (u, v) is ``along_v[:, v] + along_u[:, u]``
-        (``along_u`` [3, W], ``along_v`` [3, H]); ``origin`` [3] is the camera centre."""
+        ``ray_plane`` does (rays as in :class:`_View`; ``origin`` [3]: the camera centre)."""
         ray_z = np.add.outer(along_v[2], along_u[2])
         if origin[2] >= 0 and self._sees_only_table(origin, along_u, along_v):
             return np.divide(-origin[2], ray_z, out=ray_z)
