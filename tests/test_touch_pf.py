@@ -66,6 +66,13 @@ def test_the_stacked_class_grids_give_each_class_grid_values() -> None:
         np.testing.assert_allclose(
             grids.distance(cls, local)[row], meshes[index].grid_sdf.distance(local[row]), atol=1e-8
         )
+    # far_m: points surely that far (outside the box) get a lower bound, the others their value
+    far_m = 0.06
+    exact, bounded = grids.distance(cls, local), grids.distance(cls, local, far_m)
+    far = bounded >= far_m
+    assert far.any() and (~far).any()
+    assert np.all(bounded[far] <= exact[far] + 1e-9)
+    np.testing.assert_array_equal(bounded[~far], exact[~far])
 
 
 def surface_touches(name: str, pose: np.ndarray, count: int, seed: int) -> list[tuple]:
@@ -135,7 +142,7 @@ def test_the_mle_is_the_heaviest_particle_after_resampling(tmp_path: Path) -> No
     log_weight = np.r_[np.zeros(90), np.full(10, np.log(9.0))]
     pf.particles = Particles(
         np.r_[np.zeros(90, int), np.ones(10, int)], rotation, translation, log_weight,
-        np.zeros(100),
+        np.zeros(100), np.full(100, np.nan),
     )  # fmt: skip
     outside = np.array([2.0, 2.0, 2.0])  # a miss outside the workspace: no new evidence
     estimate = pf.update(outside, outside - [0.0, 0.0, 0.1], None)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +38,11 @@ log = logging.getLogger(__name__)
 
 SURFACE_SAMPLES = 400
 """Surface samples per class published for exploration (eq. 42) and metrics."""
+
+FAR_SIGMAS = 8.5
+"""A free-space point surely farther than this many ``sigma_distance_m`` from a particle's
+surface is not interpolated in its grid: its log likelihood (eq. 18) is then above
+log Phi(8.5) = -9.5e-18 and rounds away in a particle's summed log weight."""
 
 
 def contact_log_likelihood(
@@ -91,6 +96,7 @@ class ClassGrids:
         for grid, start, (x, y, z) in zip(grids, self._x_offset.astype(int), shapes, strict=True):
             volumes[:, start : start + x, :y, :z] = grid._volumes
         self._volumes = volumes
+        self._face_min_m = np.array([_face_min(grid._volumes[0]) for grid in grids])  # [C]
 
     def _coordinates(self, cls: Any, local_m: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Stacked grid coordinates [3, N * K] of points local_m [N, K, 3] (object frame of
@@ -110,11 +116,16 @@ class ClassGrids:
         )
         return np.asarray(values, dtype=np.float64)
 
-    def distance(self, cls: Any, local_m: FloatArray) -> FloatArray:
+    def distance(self, cls: Any, local_m: FloatArray, far_m: float = np.inf) -> FloatArray:
         """Signed distance [N, K] in m of points local_m [N, K, 3] in the frame of class
-        cls [N] (as ``GridSDF.distance``)."""
+        cls [N] (as ``GridSDF.distance``). A point outside its grid box whose distance is at
+        least ``far_m`` by the bound (distance to the box + the smallest distance on the box's
+        faces) gets that lower bound instead of being interpolated."""
         coordinates, outside_m = self._coordinates(cls, local_m)
-        return self._interpolate(0, coordinates).reshape(outside_m.shape) + outside_m
+        distance_m = (outside_m + self._face_min_m[cls][:, None]).ravel()
+        near = np.flatnonzero(distance_m < far_m)
+        distance_m[near] = self._interpolate(0, coordinates[:, near]) + outside_m.ravel()[near]
+        return distance_m.reshape(outside_m.shape)
 
     def __call__(self, cls: Any, local_m: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Signed distance [N, K] in m and unit outward normals [N, K, 3] of points local_m
@@ -129,41 +140,33 @@ class ClassGrids:
 @dataclass
 class Particles:
     """class index [N], rotation [N, 3, 3] and translation [N, 3] (world_from_object),
-    log weight [N], and log copies [N]: the log of how many resampled copies a particle's row
+    log weight [N], log copies [N]: the log of how many resampled copies a particle's row
     stands for (0 for a roughened copy or a new proposal), so that its posterior mass, which
-    resampling spreads over equal weights, still ranks it."""
+    resampling spreads over equal weights, still ranks it, and log evidence [N]: the log
+    likelihood of all data so far at the particle's pose, NaN until it is first needed (an MLE
+    candidate), then kept up to date by each step's weighing."""
 
     cls: Any
     rotation: FloatArray
     translation: FloatArray
     log_weight: FloatArray
     log_copies: FloatArray
+    log_evidence: FloatArray
 
     @classmethod
     def empty(cls) -> Particles:
-        return cls(
-            np.zeros(0, int), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0)
-        )
+        none = np.zeros(0)
+        return cls(np.zeros(0, int), np.zeros((0, 3, 3)), np.zeros((0, 3)), none, none, none)
 
     def __len__(self) -> int:
         return len(self.cls)
 
     def take(self, index: Any) -> Particles:
-        return Particles(
-            self.cls[index],
-            self.rotation[index],
-            self.translation[index],
-            self.log_weight[index],
-            self.log_copies[index],
-        )
+        return Particles(*(getattr(self, field.name)[index] for field in fields(self)))
 
     def concat(self, other: Particles) -> Particles:
         return Particles(
-            np.concatenate([self.cls, other.cls]),
-            np.concatenate([self.rotation, other.rotation]),
-            np.concatenate([self.translation, other.translation]),
-            np.concatenate([self.log_weight, other.log_weight]),
-            np.concatenate([self.log_copies, other.log_copies]),
+            *(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self))
         )
 
     def pose(self, index: int) -> FloatArray:
@@ -278,8 +281,9 @@ class TouchParticleFilter(Component):
         rotation = particles.rotation
         local = (points[None] - particles.translation[:, None]) @ rotation  # [N, K, 3]
         if normals is None:
-            distance = self._grids.distance(particles.cls, local)
-            return miss_log_likelihood(distance, self.config.sigma_distance_m)
+            sigma_m = self.config.sigma_distance_m
+            distance = self._grids.distance(particles.cls, local, FAR_SIGMAS * sigma_m)
+            return miss_log_likelihood(distance, sigma_m)
         distance, predicted = self._grids(particles.cls, local)
         error = np.linalg.norm(normals @ rotation - predicted, axis=-1)
         return contact_log_likelihood(
@@ -340,9 +344,9 @@ class TouchParticleFilter(Component):
 
     def _weigh(self, points: FloatArray, normals: FloatArray | None) -> None:
         if len(self.particles):
-            self.particles.log_weight = self.particles.log_weight + self.log_likelihoods(
-                self.particles, points, normals
-            ).sum(axis=1)
+            log_likelihood = self.log_likelihoods(self.particles, points, normals).sum(axis=1)
+            self.particles.log_weight = self.particles.log_weight + log_likelihood
+            self.particles.log_evidence = self.particles.log_evidence + log_likelihood
 
     def _normalised_weights(self) -> FloatArray:
         log_weight = self.particles.log_weight - self.particles.log_weight.max()
@@ -372,20 +376,25 @@ class TouchParticleFilter(Component):
         self.particles.translation[rows] += self._rng.normal(
             0.0, self.config.roughen_position_m, (len(rows), 3)
         )
+        self.particles.log_evidence[rows] = np.nan
 
     def _find_mle(self) -> None:
         """The MLE particle: the best, over all data, of the candidates of most posterior mass
-        (weight times resampled copies)."""
+        (weight times resampled copies). Only candidates without a log evidence yet are
+        evaluated on all data."""
         if len(self.particles) == 0:
             self._mle = None
             return
         mass = self.particles.log_weight + self.particles.log_copies
         top = np.argsort(-mass)[: self.config.mle_candidates]
-        contact_ll, miss_ll = self._all_data(self.particles.take(top))
-        total = contact_ll.sum(axis=1) + miss_ll.sum(axis=1)
-        best = int(np.argmax(total))
-        self._mle = int(top[best])
-        self._mle_contact_ll, self._mle_miss_ll = contact_ll[best], miss_ll[best]
+        evidence = self.particles.log_evidence
+        unknown = top[np.isnan(evidence[top])]
+        if len(unknown):
+            contact_ll, miss_ll = self._all_data(self.particles.take(unknown))
+            evidence[unknown] = contact_ll.sum(axis=1) + miss_ll.sum(axis=1)
+        self._mle = int(top[np.argmax(evidence[top])])
+        contact_ll, miss_ll = self._all_data(self.particles.take([self._mle]))
+        self._mle_contact_ll, self._mle_miss_ll = contact_ll[0], miss_ll[0]
 
     def _mle_total(self) -> float:
         return float(self._mle_contact_ll.sum() + self._mle_miss_ll.sum())
@@ -449,7 +458,10 @@ class TouchParticleFilter(Component):
             self.contacts[second[query]],
         )
         cls, count = np.repeat(np.arange(len(self.classes)), counts), len(poses)
-        return Particles(cls, poses[:, :3, :3], poses[:, :3, 3], np.zeros(count), np.zeros(count))
+        return Particles(
+            cls, poses[:, :3, :3], poses[:, :3, 3], np.zeros(count), np.zeros(count),
+            np.full(count, np.nan),
+        )  # fmt: skip
 
     def _weigh_proposals(self, new: Particles, counts: Any, subset: Any) -> None:
         """Eq. 27 weights of new particles (counts [C] per class, in class order): each
@@ -462,7 +474,8 @@ class TouchParticleFilter(Component):
                          for i in proposed])  # fmt: skip
         contact_ll, miss_ll = self._all_data(new.take(best))
         best_total = np.zeros(len(counts))
-        best_total[proposed] = contact_ll.sum(axis=1) + miss_ll.sum(axis=1)
+        new.log_evidence[best] = contact_ll.sum(axis=1) + miss_ll.sum(axis=1)
+        best_total[proposed] = new.log_evidence[best]
         best_subset = np.zeros(len(counts))
         best_subset[proposed] = subset_ll[best]
         reference = self._reference_log_weight()
@@ -558,6 +571,12 @@ def _name_clash(specs: list[str]) -> str | None:
             )
         first[name] = spec
     return None
+
+
+def _face_min(distance_m: FloatArray) -> float:
+    """The smallest value [m] on the six faces of a grid of distances [X, Y, Z]."""
+    faces = (distance_m[[0, -1]], distance_m[:, [0, -1]], distance_m[:, :, [0, -1]])
+    return float(min(face.min() for face in faces))
 
 
 def _feature_samples(mesh: Mesh, count: int) -> tuple[FloatArray, FloatArray]:
