@@ -148,6 +148,7 @@ class SimDepthCamera(Component):
         return self._views[key]
 
     def _new_view(self, intrinsics: CameraIntrinsics) -> _View:
+        """The rays and the table of ``intrinsics`` from the current pose."""
         pixel_u = np.arange(intrinsics.width, dtype=np.float64)
         pixel_v = np.arange(intrinsics.height, dtype=np.float64)
         x_per_z = (pixel_u - intrinsics.cx) / intrinsics.fx  # as CameraIntrinsics.pixel_rays
