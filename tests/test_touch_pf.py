@@ -150,6 +150,22 @@ def test_the_mle_is_the_heaviest_particle_after_resampling(tmp_path: Path) -> No
     np.testing.assert_allclose(pf.mle_pose(), pose, atol=1e-9)
 
 
+def test_proposals_on_the_paired_contacts_match_a_full_evaluation(tmp_path: Path) -> None:
+    """The contact a proposal was aligned on lies on a model point: its precomputed log
+    likelihood there stands in for the grid lookup without changing the result."""
+    config = TouchParticleFilter.Config(classes=["chair", "mug", "bottle"])
+    pf = TouchParticleFilter(config, Ctx(tmp_path))
+    for start, target, contact in surface_touches("chair", a_pose(1), 6, 1):
+        pf.update(start, target, contact)
+    proposals = pf._proposals()
+    assert proposals is not None
+    new, counts, subset_ll = proposals
+    assert len(new) == counts.sum() > 0
+    subset = np.r_[pf._pair_partners(), len(pf.contacts) - 1]
+    exact = pf.log_likelihoods(new, pf.contacts[subset], pf.normals[subset]).sum(axis=1)
+    np.testing.assert_allclose(subset_ll, exact, rtol=0, atol=1e-9)
+
+
 def test_explorers_conform_and_stop_when_the_surface_is_covered(tmp_path: Path) -> None:
     for cls in (DhdExplorer, RrtExplorer):
         explorer = cls(cls.Config(dhd_threshold_m=0.05, min_contacts=2), Ctx(tmp_path))

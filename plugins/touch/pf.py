@@ -41,8 +41,8 @@ SURFACE_SAMPLES = 400
 
 FAR_SIGMAS = 8.5
 """A free-space point surely farther than this many ``sigma_distance_m`` from a particle's
-surface is not interpolated in its grid: its log likelihood (eq. 18) is then above
-log Phi(8.5) = -9.5e-18 and rounds away in a particle's summed log weight."""
+surface is not interpolated in its grid and gets log likelihood 0 (eq. 18 gives between
+log Phi(8.5) = -9.5e-18 and 0, which rounds away in a particle's summed log weight)."""
 
 
 def contact_log_likelihood(
@@ -242,6 +242,7 @@ class TouchParticleFilter(Component):
         self.build_s = time.perf_counter() - start_s
         self.table_build_s = sum(c.table.build_s for c in self.classes)
         self._grids = ClassGrids([c.grid for c in self.classes])
+        self._anchor_ll = [self._model_log_likelihoods(i) for i in range(len(self.classes))]
         self.particles = Particles.empty()
         self.contacts = np.zeros((0, 3))
         self.normals = np.zeros((0, 3))
@@ -265,6 +266,16 @@ class TouchParticleFilter(Component):
             surface_normals,
         )
 
+    def _model_log_likelihoods(self, index: int) -> FloatArray:
+        """Contact log likelihoods [M] of class ``index``'s PPF model points with their normals
+        (where a proposal puts the contact it was aligned on)."""
+        table = self.classes[index].table
+        distance, predicted = self._grids(np.array([index]), table.points[None])
+        error = np.linalg.norm(table.normals - predicted[0], axis=-1)
+        return contact_log_likelihood(
+            distance[0], error, self.config.sigma_distance_m, self.config.sigma_normal
+        )
+
     @property
     def class_names(self) -> list[str]:
         return [c.name for c in self.classes]
@@ -275,15 +286,19 @@ class TouchParticleFilter(Component):
         self, particles: Particles, points: FloatArray, normals: FloatArray | None
     ) -> FloatArray:
         """Per particle and point [N, K]: contact log likelihoods (eq. 16) when ``normals``
-        [K, 3] is given, else negative-information log likelihoods (eq. 18)."""
-        if len(points) == 0 or len(particles) == 0:
-            return np.zeros((len(particles), len(points)))
+        is given, else negative-information log likelihoods (eq. 18). ``points`` and
+        ``normals``: [K, 3], or [N, K, 3] for points of each particle's own."""
+        if points.shape[-2] == 0 or len(particles) == 0:
+            return np.zeros((len(particles), points.shape[-2]))
         rotation = particles.rotation
-        local = (points[None] - particles.translation[:, None]) @ rotation  # [N, K, 3]
+        local = (points - particles.translation[:, None]) @ rotation  # [N, K, 3]
         if normals is None:
             sigma_m = self.config.sigma_distance_m
             distance = self._grids.distance(particles.cls, local, FAR_SIGMAS * sigma_m)
-            return miss_log_likelihood(distance, sigma_m)
+            near = distance < FAR_SIGMAS * sigma_m
+            result = np.zeros(distance.shape)
+            result[near] = miss_log_likelihood(distance[near], sigma_m)
+            return result
         distance, predicted = self._grids(particles.cls, local)
         error = np.linalg.norm(normals @ rotation - predicted, axis=-1)
         return contact_log_likelihood(
@@ -414,6 +429,17 @@ class TouchParticleFilter(Component):
         return np.array([segment[0] for segment in segments])
 
     def _propose(self) -> None:
+        proposals = self._proposals()
+        if proposals is not None:
+            new, counts, subset_ll = proposals
+            self._weigh_proposals(new, counts, subset_ll)
+            self.particles = self.particles.concat(new)
+            self.particles.log_weight -= self.particles.log_weight.max()
+
+    def _proposals(self) -> tuple[Particles, Any, FloatArray] | None:
+        """New particles from the newest contact paired with earlier ones (III-E), their count
+        per class [C] and their log likelihoods on the paired contacts [N]; None without a
+        matching model pair."""
         partners = self._pair_partners()
         newest = len(self.contacts) - 1
         first = np.r_[np.full(len(partners), newest), partners]
@@ -425,11 +451,13 @@ class TouchParticleFilter(Component):
         pairs = [self._class_pairs(shape, keys) for shape in self.classes]
         counts = np.array([len(query) for _, _, query in pairs])
         if counts.sum() == 0:
-            return
+            return None
         new = self._aligned(pairs, counts, first, second)
-        self._weigh_proposals(new, counts, np.r_[partners, newest])
-        self.particles = self.particles.concat(new)
-        self.particles.log_weight -= self.particles.log_weight.max()
+        query = np.concatenate([q for _, _, q in pairs])
+        anchor_ll = np.concatenate(
+            [ll[f] for ll, (f, _, _) in zip(self._anchor_ll, pairs, strict=True)]
+        )
+        return new, counts, self._subset_log_likelihoods(new, partners, query, anchor_ll)
 
     def _class_pairs(self, shape: ShapeClass, keys: Any) -> tuple[Any, Any, Any]:
         """Model pairs of ``shape`` matching the query keys [Q], at most
@@ -463,11 +491,28 @@ class TouchParticleFilter(Component):
             np.full(count, np.nan),
         )  # fmt: skip
 
-    def _weigh_proposals(self, new: Particles, counts: Any, subset: Any) -> None:
-        """Eq. 27 weights of new particles (counts [C] per class, in class order): each
-        class's best on the contacts ``subset`` is weighed on all data, the others relative
-        to it on the subset."""
-        subset_ll = self.log_likelihoods(new, self.contacts[subset], self.normals[subset]).sum(1)
+    def _subset_log_likelihoods(
+        self, new: Particles, partners: Any, query: Any, anchor_ll: FloatArray
+    ) -> FloatArray:
+        """Log likelihoods [N] of new particles on the contacts paired (partners [P], then the
+        newest). The contact of each particle's pair that it put onto a model point (the
+        first of query [N]) is not looked up: it gets that point's ``anchor_ll`` [N]."""
+        count, subset = len(partners), np.r_[partners, len(self.contacts) - 1]
+        anchor = np.where(query < count, count, query - count)  # [N] column in the subset
+        others = np.array([np.delete(np.arange(count + 1), a) for a in range(count + 1)])
+        columns = others[anchor]  # [N, P]
+        log_likelihood = np.empty((len(new), count + 1))
+        rows = np.arange(len(new))
+        log_likelihood[rows[:, None], columns] = self.log_likelihoods(
+            new, self.contacts[subset][columns], self.normals[subset][columns]
+        )
+        log_likelihood[rows, anchor] = anchor_ll
+        return np.asarray(log_likelihood.sum(axis=1), dtype=np.float64)
+
+    def _weigh_proposals(self, new: Particles, counts: Any, subset_ll: FloatArray) -> None:
+        """Eq. 27 weights of new particles (counts [C] per class, in class order) from their
+        log likelihoods on the paired contacts, subset_ll [N]: each class's best there is
+        weighed on all data, the others relative to it."""
         ends = np.cumsum(counts)
         proposed = np.flatnonzero(counts)
         best = np.array([ends[i] - counts[i] + np.argmax(subset_ll[ends[i] - counts[i] : ends[i]])
