@@ -94,7 +94,7 @@ class ClassGrids:
         self._step_m = np.array([grid.step_m for grid in grids])  # [C]
         volumes = np.zeros((4, shapes[:, 0].sum(), *shapes[:, 1:].max(axis=0)), np.float32)
         for grid, start, (x, y, z) in zip(grids, self._x_offset.astype(int), shapes, strict=True):
-            volumes[:, start : start + x, :y, :z] = grid._volumes
+            volumes[:, start : start + x, :y, :z] = grid._volumes  # GridSDF's [4, X, Y, Z]
         self._volumes = volumes
         self._face_min_m = np.array([_face_min(grid._volumes[0]) for grid in grids])  # [C]
 
@@ -111,6 +111,7 @@ class ClassGrids:
         return coordinates, outside_m
 
     def _interpolate(self, channel: int, coordinates: FloatArray) -> FloatArray:
+        """Trilinear values [M] of one channel at stacked grid coordinates [3, M]."""
         values = map_coordinates(
             self._volumes[channel], coordinates, order=1, mode="nearest", prefilter=False
         )
