@@ -45,9 +45,10 @@ from scipy.special import expit, logsumexp
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import DataError
 from vistac.plugins.shape.superquadric import (
+    RadialPass,
     distance_to_surface_m,
     radial_distance_gradient,
-    radial_distance_rows,
+    radial_pass,
     surface_area_m2,
 )
 from vistac.types import FloatArray, PointCloud, ShapeEstimate, Superquadric
@@ -205,7 +206,9 @@ class _Rows:
 
 
 def _take(value: Any, rows: IntArray) -> Any:
-    """The rows [B'] of an array or of :class:`_Rows`."""
+    """The rows [B'] of an array, of :class:`_Rows` or of a :class:`RadialPass`."""
+    if isinstance(value, RadialPass):
+        return RadialPass(*(None if v is None else v[rows] for v in value))
     return value.take(rows) if isinstance(value, _Rows) else value[rows]
 
 
@@ -219,15 +222,43 @@ def _put(value: Any, rows: IntArray, other: Any) -> Any:
 
 
 @dataclass(frozen=True)
+class _Forward(_Rows):
+    """What the gradient of the radial distances of a problem's points to superquadrics [B]
+    reuses of their evaluation: the rotations [B, 3, 3], the points less the centres
+    [B, 3, N + M] and the forward pass in the superquadrics' frames (:func:`radial_pass`)."""
+
+    ROWS = ("rotation", "offset", "radial")
+    rotation: FloatArray
+    offset: FloatArray
+    radial: RadialPass
+
+
+@dataclass(frozen=True)
 class _Evaluation(_Rows):
     """Superquadrics [B] against their problems' points: the radial distance [B, N] of the
     points to fit, and of the excluded points whether they lie inside [B, M] and their radial
-    depth inside [B, M] (0 outside)."""
+    depth inside [B, M] (0 outside); the forward pass for the gradient, or None where rows
+    of several evaluations were put together (copying it would cost more than computing it
+    again where needed)."""
 
     ROWS = ("distance", "inside", "depth")
     distance: FloatArray
     inside: BoolArray
     depth: FloatArray
+    forward: _Forward | None
+
+    def take(self, rows: IntArray) -> Self:
+        """The rows [B'] alone, with their forward pass."""
+        out = super().take(rows)
+        if out is self or self.forward is None:
+            return out
+        return replace(out, forward=self.forward.take(rows))
+
+    def put(self, rows: IntArray, other: Self) -> Self:
+        """A copy with the rows [B'] (sorted, distinct) replaced by those of ``other``,
+        without a forward pass unless all rows come from one of the two."""
+        out = super().put(rows, other)
+        return out if out is self or out is other else replace(out, forward=None)
 
 
 @dataclass(frozen=True)
@@ -260,23 +291,35 @@ class _Problem(_Rows):
 
     def evaluate(self, full: FloatArray) -> _Evaluation:
         """The points against the superquadric of each row, full [B, 14]."""
-        rotation = rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
-        local = np.matmul(rotation.swapaxes(1, 2), self.points_t - full[:, [_X, _Y, _Z], None])
-        distance, log_f = radial_distance_rows(
-            local, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER]
+        forward = self._forward(full)
+        distance, excluded = forward.radial.distance, slice(self.count, None)
+        assert distance is not None
+        inside = forward.radial.log_f[:, excluded] < 0
+        return _Evaluation(
+            distance[:, : self.count], inside, distance[:, excluded] * inside, forward
         )
-        excluded = slice(self.count, None)
-        inside = log_f[:, excluded] < 0
-        return _Evaluation(distance[:, : self.count], inside, distance[:, excluded] * inside)
 
-    def distance_gradient(self, full: FloatArray) -> FloatArray:
-        """Gradient [B, F, N + M] of the radial distance of each point to the superquadric of
-        each row, full [B, 14], with respect to the free parameters (on a table, a3's row
-        includes z = a3)."""
+    def _forward(self, full: FloatArray) -> _Forward:
+        """The forward pass of the radial distances to the superquadric of each row, full
+        [B, 14]."""
         rotation = rotation_zyx(full[:, _YAW], full[:, _PITCH], full[:, _ROLL])
         offset = self.points_t - full[:, [_X, _Y, _Z], None]
+        radial = radial_pass(
+            np.matmul(rotation.swapaxes(1, 2), offset),
+            full[:, _SCALE],
+            full[:, _EXPONENTS],
+            full[:, _TAPER],
+        )
+        return _Forward(rotation, offset, radial)
+
+    def distance_gradient(self, full: FloatArray, evaluation: _Evaluation) -> FloatArray:
+        """Gradient [B, F, N + M] of the radial distance of each point to the superquadric of
+        each row, full [B, 14] (``evaluation``: its evaluation, whose forward pass is reused),
+        with respect to the free parameters (on a table, a3's row includes z = a3)."""
+        forward = self._forward(full) if evaluation.forward is None else evaluation.forward
+        rotation, offset, radial = forward.rotation, forward.offset, forward.radial
         _, grad = radial_distance_gradient(
-            rotation.swapaxes(1, 2) @ offset, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER]
+            radial.points_t, full[:, _SCALE], full[:, _EXPONENTS], full[:, _TAPER], radial
         )
         out = np.empty((len(full), len(PARAMETER_NAMES), offset.shape[2]))
         out[:, _SHAPE_INDICES] = grad[:, 3:]
@@ -546,7 +589,8 @@ def _m_step(
             np.where(better[:, None], trial_value, value),
             np.where(better, trial_cost, cost),
         )
-        evaluation = evaluation.put(rows, trial_evaluation.take(rows))
+        accepted = trial_evaluation.take(rows)
+        evaluation = evaluation.put(rows, accepted)
         damping = np.where(
             better,
             np.maximum(damping / _LM_DAMPING_FACTOR, _LM_MIN_DAMPING),
@@ -554,7 +598,7 @@ def _m_step(
         )
         if len(rows) and index + 1 < evaluations:  # the last step's would go unused
             normal[rows], gradient[rows] = residuals.take(rows).normal_equations(
-                x[rows], evaluation.take(rows), value[rows]
+                x[rows], accepted, value[rows]
             )
     return problem.expand(x, state.params), evaluation
 
@@ -598,7 +642,7 @@ class _Residuals(_Rows):
         x [B, F] (``evaluation`` and the residuals r, ``value``: those of x), the points' part
         and the area's summed apart. The depth of an excluded point outside is 0 nearby, and so
         is its gradient."""
-        jac = self.problem.distance_gradient(self.problem.expand(x, self.base))
+        jac = self.problem.distance_gradient(self.problem.expand(x, self.base), evaluation)
         jac *= np.concatenate(
             [self.sqrt_w, np.sqrt(_EXCLUSION_WEIGHT) * evaluation.inside], axis=1
         )[:, None, :]

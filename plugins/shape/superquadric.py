@@ -26,6 +26,8 @@ shear).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy.spatial import cKDTree
 from vistac.types import FloatArray, Superquadric
@@ -76,11 +78,21 @@ def remove_taper(points: FloatArray, scale_m: FloatArray, taper: FloatArray) -> 
 
 def _log_f(points_t: FloatArray, scale_m: FloatArray, exponents: FloatArray) -> FloatArray:
     """log F of eq. 1 from untapered coordinate rows [..., 3, N]: [..., N]."""
-    log_ratio = np.log(np.maximum(np.abs(points_t), _TINY_M)) - np.log(scale_m)[..., None]
+    return _log_f_parts(points_t, scale_m, exponents)[-1]
+
+
+def _log_f_parts(
+    points_t: FloatArray, scale_m: FloatArray, exponents: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`_log_f` of untapered coordinate rows [..., 3, N] with its parts: |points|,
+    log |points| / a and that times 2 / eps [..., 3, N], log F of the x-y part [..., N]; then
+    log F [..., N]."""
+    abs_u = np.abs(points_t)
+    log_ratio = np.log(np.maximum(abs_u, _TINY_M)) - np.log(scale_m)[..., None]
     scaled = (2.0 / exponents[..., [1, 1, 0]])[..., None] * log_ratio
     log_xy = np.logaddexp(scaled[..., 0, :], scaled[..., 1, :])
     ratio = exponents[..., 1, None] / exponents[..., 0, None]
-    return np.logaddexp(ratio * log_xy, scaled[..., 2, :])
+    return abs_u, log_ratio, scaled, log_xy, np.logaddexp(ratio * log_xy, scaled[..., 2, :])
 
 
 def log_inside_outside(
@@ -110,31 +122,88 @@ def radial_surface_points(
     This is the closest-point approximation of EMS: exact for spheres, and within a few
     percent of the true distance for points near the surface. Returns [..., N, 3].
     """
-    surface_t = _radial_surface(np.swapaxes(points, -1, -2), scale_m, exponents, taper)[0]
-    return np.swapaxes(surface_t, -1, -2)
+    points_t = np.swapaxes(points, -1, -2)
+    forward = _radial_surface(points_t, scale_m, exponents, taper)
+    surface = forward.v.copy()
+    surface[..., 0, :] = _surface_x(forward, taper)
+    return np.swapaxes(surface, -1, -2)
+
+
+class RadialPass(NamedTuple):
+    """The forward pass of the radial distance of points (coordinate rows [..., 3, N]) to
+    superquadrics, kept for its gradient (:func:`radial_distance_gradient`). Per point [..., N]
+    or per coordinate row [..., 3, N]: the taper coordinate y / a2 clipped to [-1, 1] and f(y)
+    of eq. 2 (floored), at the point (``*_in``) and at its untapered surface point
+    (``*_out``); the untapered point ``u`` [..., 3, N], its |u| and log |u| / a [..., 3, N],
+    that times 2 / eps [..., 3, N]; log F of the x-y part and of eq. 1 [..., N]; the radial
+    scale F^(-eps1 / 2) [..., N] and the untapered surface point ``v`` [..., 3, N]; the
+    residual point - surface point [..., 3, N] and its length, the distance [..., N]
+    (``residual`` and ``distance`` are None for the surface alone)."""
+
+    points_t: FloatArray
+    t_in: FloatArray
+    f_in: FloatArray
+    u: FloatArray
+    abs_u: FloatArray
+    log_ratio: FloatArray
+    scaled: FloatArray
+    log_xy: FloatArray
+    log_f: FloatArray
+    radial: FloatArray
+    v: FloatArray
+    t_out: FloatArray
+    f_out: FloatArray
+    residual: FloatArray | None = None
+    distance: FloatArray | None = None
 
 
 def _radial_surface(
     points_t: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """:func:`radial_surface_points` of coordinate rows [..., 3, N], as coordinate rows
-    [..., 3, N], and log F of eq. 1 per point [..., N]."""
-    untapered = _with_x(
-        points_t, _untapered_x(points_t[..., 0, :], points_t[..., 1, :], scale_m, taper)
-    )
-    log_f = _log_f(untapered, scale_m, exponents)
+) -> RadialPass:
+    """The forward pass of coordinate rows [..., 3, N] up to the untapered radial surface
+    point (without the residual and distance)."""
+    a2 = scale_m[..., 1, None]
+    k1, k2, shear = taper[..., 0, None], taper[..., 1, None], shear_of(taper)[..., None]
+    qx, qy = points_t[..., 0, :], points_t[..., 1, :]
+    t_in = _clip_unit(qy / a2)
+    f_in = _taper_value(t_in, k1, k2)
+    u = _with_x(points_t, (qx - shear * qy) / f_in)
+    abs_u, log_ratio, scaled, log_xy, log_f = _log_f_parts(u, scale_m, exponents)
     radial = np.exp(-0.5 * exponents[..., 0, None] * np.maximum(log_f, _MIN_LOG_F))
-    surface = untapered * radial[..., None, :]
-    surface[..., 0, :] = _tapered_x(surface[..., 0, :], surface[..., 1, :], scale_m, taper)
-    return surface, log_f
+    v = u * radial[..., None, :]
+    t_out = _clip_unit(v[..., 1, :] / a2)
+    f_out = _taper_value(t_out, k1, k2)
+    return RadialPass(
+        points_t, t_in, f_in, u, abs_u, log_ratio, scaled, log_xy, log_f, radial, v, t_out, f_out
+    )
+
+
+def _surface_x(forward: RadialPass, taper: FloatArray) -> FloatArray:
+    """x of the (tapered) radial surface point [..., N] of a forward pass."""
+    v = forward.v
+    return forward.f_out * v[..., 0, :] + shear_of(taper)[..., None] * v[..., 1, :]
 
 
 def _with_x(points_t: FloatArray, x: FloatArray) -> FloatArray:
     """A copy of coordinate rows [..., 3, N] with the x row replaced by ``x`` [..., N] (the
     rows broadcast to its leading shape)."""
-    out = np.array(np.broadcast_to(points_t, (*x.shape[:-1], *points_t.shape[-2:])))
+    out = np.empty((*x.shape[:-1], *points_t.shape[-2:]))
+    out[...] = points_t
     out[..., 0, :] = x
     return out
+
+
+def radial_pass(
+    points_t: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
+) -> RadialPass:
+    """The forward pass of :func:`radial_distance_rows` of coordinate rows [..., 3, N] to
+    superquadrics (scale [..., 3], exponents [..., 2], taper [..., 2 or 3]), with the residual
+    and the distance."""
+    forward = _radial_surface(points_t, scale_m, exponents, taper)
+    residual = points_t - forward.v
+    residual[..., 0, :] = points_t[..., 0, :] - _surface_x(forward, taper)
+    distance = np.sqrt((residual * residual).sum(axis=-2))
+    return forward._replace(residual=residual, distance=distance)
 
 
 def radial_distance_rows(
@@ -142,9 +211,9 @@ def radial_distance_rows(
 ) -> tuple[FloatArray, FloatArray]:
     """:func:`radial_distance_m` [..., N] of points given as coordinate rows [..., 3, N] (the
     fast layout), and log F of eq. 1 [..., N] (< 0 inside), in one pass."""
-    surface, log_f = _radial_surface(points_t, scale_m, exponents, taper)
-    offset = points_t - surface
-    return np.sqrt((offset * offset).sum(axis=-2)), log_f
+    forward = radial_pass(points_t, scale_m, exponents, taper)
+    assert forward.distance is not None
+    return forward.distance, forward.log_f
 
 
 def radial_distance_m(
@@ -154,47 +223,39 @@ def radial_distance_m(
     return radial_distance_rows(np.swapaxes(points, -1, -2), scale_m, exponents, taper)[0]
 
 
-def _logaddexp_weight(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """log(e^a + e^b) [N] and the share of the first term e^a / (e^a + e^b) [N]."""
-    total = np.logaddexp(a, b)
-    return total, np.exp(a - total)
-
-
 def radial_distance_gradient(
-    points_t: FloatArray, scale_m: FloatArray, exponents: FloatArray, taper: FloatArray
+    points_t: FloatArray,
+    scale_m: FloatArray,
+    exponents: FloatArray,
+    taper: FloatArray,
+    forward: RadialPass | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Radial distance [..., N] (as :func:`radial_distance_m`) of untransformed
     superquadric-frame points, given as coordinate rows [..., 3, N], to superquadrics (scale
     [..., 3], exponents [..., 2], taper [..., 3]) and its analytic gradient [..., 11, N] with
     respect to (qx, qy, qz, a1, a2, a3, eps1, eps2, kappa1, kappa2, shear), by reverse-mode
-    differentiation of the forward pass written out below (the three coordinates together
-    where they are alike: few, larger array operations)."""
+    differentiation of the forward pass (``forward``: :func:`radial_pass` of these arguments,
+    when already known), the three coordinates together where they are alike: few, larger
+    array operations."""
+    if forward is None:
+        forward = radial_pass(points_t, scale_m, exponents, taper)
+    residual, distance = forward.residual, forward.distance
+    assert residual is not None and distance is not None
     a2 = scale_m[..., 1, None]
     eps1, eps2 = exponents[..., 0, None], exponents[..., 1, None]
     k1, k2, shear = taper[..., 0, None], taper[..., 1, None], shear_of(taper)[..., None]
     power = (2.0 / exponents[..., [1, 1, 0]])[..., None]
-    qx, qy = points_t[..., 0, :], points_t[..., 1, :]
-    # Forward: untaper, inside-outside in log space, radial scale, taper back.
-    t_in, t_in_free = _taper_coordinate(qy, a2)
-    f_in, f_in_slope = _taper_value(t_in, k1, k2)
-    u = _with_x(points_t, (qx - shear * qy) / f_in)
-    abs_u = np.abs(u)
-    log_ratio = np.log(np.maximum(abs_u, _TINY_M)) - np.log(scale_m)[..., None]
-    scaled = power * log_ratio
-    log_xy, share_x = _logaddexp_weight(scaled[..., 0, :], scaled[..., 1, :])
-    log_f, share_xy = _logaddexp_weight(eps2 / eps1 * log_xy, scaled[..., 2, :])
+    qy = points_t[..., 1, :]
+    t_in, f_in, u, log_ratio = forward.t_in, forward.f_in, forward.u, forward.log_ratio
+    log_xy, log_f, radial, v = forward.log_xy, forward.log_f, forward.radial, forward.v
+    t_out, f_out = forward.t_out, forward.f_out
+    share_x = np.exp(forward.scaled[..., 0, :] - log_xy)
+    share_xy = np.exp(eps2 / eps1 * log_xy - log_f)
     clipped_log_f = np.maximum(log_f, _MIN_LOG_F)
-    radial = np.exp(-0.5 * eps1 * clipped_log_f)
-    v = u * radial[..., None, :]
-    t_out, t_out_free = _taper_coordinate(v[..., 1, :], a2)
-    f_out, f_out_slope = _taper_value(t_out, k1, k2)
-    residual = points_t - v
-    residual[..., 0, :] = qx - (f_out * v[..., 0, :] + shear * v[..., 1, :])
-    distance = np.sqrt((residual * residual).sum(axis=-2))
     # Backward (g_surface = -residual / distance; the gradient wrt q starts at -g_surface).
     g_surface = residual * (-1.0 / np.maximum(distance, _TINY_M))[..., None, :]
     g_f_out = g_surface[..., 0, :] * v[..., 0, :]
-    g_t_out = g_f_out * f_out_slope * t_out_free
+    g_t_out = g_f_out * _taper_slope(t_out, f_out, k1, k2) * (np.abs(v[..., 1, :] / a2) < 1.0)
     g_v = g_surface.copy()
     g_v[..., 0, :] *= f_out
     g_v[..., 1, :] += g_surface[..., 0, :] * shear + g_t_out / a2
@@ -203,13 +264,17 @@ def radial_distance_gradient(
     g_xy = g_log_f * share_xy
     g_log_xy = g_xy * (eps2 / eps1)
     g_x = g_log_xy * share_x
-    g_log_ratio = power * np.stack([g_x, g_log_xy - g_x, g_log_f - g_xy], axis=-2)
-    g_u = g_v * radial[..., None, :] + g_log_ratio / np.where(abs_u > _TINY_M, u, np.inf)
+    g_log_ratio = np.empty_like(u)
+    g_log_ratio[..., 0, :] = g_x
+    np.subtract(g_log_xy, g_x, out=g_log_ratio[..., 1, :])
+    np.subtract(g_log_f, g_xy, out=g_log_ratio[..., 2, :])
+    g_log_ratio *= power
+    g_u = g_v * radial[..., None, :] + g_log_ratio / np.where(forward.abs_u > _TINY_M, u, np.inf)
     g_ux = g_u[..., 0, :] / f_in
-    g_t_in = -g_ux * u[..., 0, :] * f_in_slope * t_in_free
+    g_t_in = -g_ux * u[..., 0, :] * _taper_slope(t_in, f_in, k1, k2) * (np.abs(qy / a2) < 1.0)
     grad = np.empty((*distance.shape[:-1], 11, distance.shape[-1]))
-    grad[..., :3, :] = g_u - g_surface
-    grad[..., 0, :] = g_ux - g_surface[..., 0, :]
+    np.subtract(g_u, g_surface, out=grad[..., :3, :])
+    np.subtract(g_ux, g_surface[..., 0, :], out=grad[..., 0, :])
     grad[..., 1, :] += g_t_in / a2 - g_ux * shear
     grad[..., 3:6, :] = -g_log_ratio / scale_m[..., None]
     grad[..., 4, :] -= (g_t_out * v[..., 1, :] + g_t_in * qy) / (a2 * a2)
@@ -232,20 +297,22 @@ def radial_distance_gradient(
     return distance, grad
 
 
-def _taper_coordinate(y_m: FloatArray, a2_m: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """t = y / a2 clipped to [-1, 1] [..., N], and whether it is not clipped [..., N]."""
-    t = y_m / a2_m
-    return np.clip(t, -1.0, 1.0), np.abs(t) < 1.0
+def _clip_unit(t: FloatArray) -> FloatArray:
+    """t [..., N] clipped to [-1, 1] (as np.clip, without its Python-level overhead)."""
+    return np.minimum(np.maximum(t, -1.0), 1.0)
 
 
-def _taper_value(
-    t: FloatArray, kappa1: FloatArray, kappa2: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """f(t) of eq. 2 with its floor [..., N], and its slope df/dt where the floor is not
-    active (else 0) [..., N]."""
-    factor = 1.0 + kappa1 * t + kappa2 * t * t
-    free = factor > _MIN_TAPER_FACTOR
-    return np.maximum(factor, _MIN_TAPER_FACTOR), (kappa1 + 2.0 * kappa2 * t) * free
+def _taper_value(t: FloatArray, kappa1: FloatArray, kappa2: FloatArray) -> FloatArray:
+    """f(t) of eq. 2 with its floor [..., N]."""
+    return np.maximum(1.0 + kappa1 * t + kappa2 * t * t, _MIN_TAPER_FACTOR)
+
+
+def _taper_slope(
+    t: FloatArray, factor: FloatArray, kappa1: FloatArray, kappa2: FloatArray
+) -> FloatArray:
+    """df/dt of eq. 2 at t [..., N] where the floor of f (``factor``: :func:`_taper_value`) is
+    not active, else 0: [..., N]."""
+    return (kappa1 + 2.0 * kappa2 * t) * (factor > _MIN_TAPER_FACTOR)
 
 
 def to_superquadric_frame(sq: Superquadric, points_m: FloatArray) -> FloatArray:
