@@ -148,6 +148,13 @@ class MeshSDF:
         )
 
 
+def trilinear(volume: FloatArray, coordinates: FloatArray) -> FloatArray:
+    """Trilinear values [M] (float64) of volume [X, Y, Z] at grid coordinates [3, M] (clamped
+    to the grid by the caller; beyond it, the nearest grid value)."""
+    values = map_coordinates(volume, coordinates, order=1, mode="nearest", prefilter=False)
+    return np.asarray(values, dtype=np.float64)
+
+
 class GridSDF:
     """A signed distance sampled on a regular grid, interpolated trilinearly
     (``scipy.ndimage.map_coordinates``, order 1).
@@ -165,7 +172,7 @@ class GridSDF:
         self._volumes = np.ascontiguousarray(
             np.concatenate([distance[None], np.moveaxis(normals, -1, 0)]), dtype=np.float32
         )
-        """[4, X, Y, Z]: the distance, then the normal's x, y and z."""
+        self._volumes.flags.writeable = False
 
     @classmethod
     def from_sdf(
@@ -191,11 +198,13 @@ class GridSDF:
         outside_m = np.linalg.norm(scaled - clamped, axis=1) * self.step_m
         return np.ascontiguousarray(clamped.T), outside_m
 
+    @property
+    def volumes(self) -> FloatArray:
+        """[4, X, Y, Z] float32: the distance (m), then the normal's x, y and z (read only)."""
+        return self._volumes
+
     def _interpolate(self, channel: int, coordinates: FloatArray) -> FloatArray:
-        values = map_coordinates(
-            self._volumes[channel], coordinates, order=1, mode="nearest", prefilter=False
-        )
-        return np.asarray(values, dtype=np.float64)
+        return trilinear(self._volumes[channel], coordinates)
 
     def distance(self, points: FloatArray) -> FloatArray:
         """points [..., 3] -> signed distance [...] in m (no normals: a quarter of the work)."""

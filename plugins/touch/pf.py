@@ -24,12 +24,11 @@ from typing import Any
 
 import numpy as np
 from pydantic import Field, field_validator
-from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 from scipy.special import log_ndtr
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.plugins.touch.library import KNOWN, resolve_shape, shape_name
-from vistac.plugins.touch.meshes import GridSDF, Mesh, apply_pose, transform_sdf
+from vistac.plugins.touch.meshes import GridSDF, Mesh, apply_pose, transform_sdf, trilinear
 from vistac.plugins.touch.ppf import PpfTable, Quantisation, align_pairs, point_pair_features
 from vistac.plugins.touch.types import MlePrior
 from vistac.types import FloatArray
@@ -94,9 +93,9 @@ class ClassGrids:
         self._step_m = np.array([grid.step_m for grid in grids])  # [C]
         volumes = np.zeros((4, shapes[:, 0].sum(), *shapes[:, 1:].max(axis=0)), np.float32)
         for grid, start, (x, y, z) in zip(grids, self._x_offset.astype(int), shapes, strict=True):
-            volumes[:, start : start + x, :y, :z] = grid._volumes  # GridSDF's [4, X, Y, Z]
+            volumes[:, start : start + x, :y, :z] = grid.volumes
         self._volumes = volumes
-        self._face_min_m = np.array([_face_min(grid._volumes[0]) for grid in grids])  # [C]
+        self._face_min_m = np.array([_face_min(grid.volumes[0]) for grid in grids])  # [C]
 
     def _coordinates(self, cls: Any, local_m: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Stacked grid coordinates [3, N * K] of points local_m [N, K, 3] (object frame of
@@ -112,10 +111,7 @@ class ClassGrids:
 
     def _interpolate(self, channel: int, coordinates: FloatArray) -> FloatArray:
         """Trilinear values [M] of one channel at stacked grid coordinates [3, M]."""
-        values = map_coordinates(
-            self._volumes[channel], coordinates, order=1, mode="nearest", prefilter=False
-        )
-        return np.asarray(values, dtype=np.float64)
+        return trilinear(self._volumes[channel], coordinates)
 
     def distance(self, cls: Any, local_m: FloatArray, far_m: float = np.inf) -> FloatArray:
         """Signed distance [N, K] in m of points local_m [N, K, 3] in the frame of class
