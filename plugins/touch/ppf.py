@@ -122,6 +122,12 @@ def align_pairs(
     t_scene = frame_to_x(scene_p1, scene_n1)
     alpha = _angle_about_x(t_scene, scene_p2) - _angle_about_x(t_model, model_p2)
     c, s = np.cos(alpha), np.sin(alpha)
-    spin = np.tile(np.eye(4), (len(alpha), 1, 1))
+    spin = np.zeros((len(alpha), 3, 3))
+    spin[:, 0, 0] = 1.0
     spin[:, 1, 1], spin[:, 1, 2], spin[:, 2, 1], spin[:, 2, 2] = c, -s, s, c
-    return np.asarray(np.linalg.inv(t_scene) @ spin @ t_model, dtype=np.float64)
+    # t_scene = [R | -R p1] is rigid: its inverse is [R^T | p1], no general inverse needed
+    scene_back = t_scene[:, :3, :3].transpose(0, 2, 1) @ spin  # [N, 3, 3]
+    pose = np.tile(np.eye(4), (len(alpha), 1, 1))
+    pose[:, :3, :3] = scene_back @ t_model[:, :3, :3]
+    pose[:, :3, 3] = np.einsum("nij,nj->ni", scene_back, t_model[:, :3, 3]) + scene_p1
+    return pose
