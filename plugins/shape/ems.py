@@ -464,7 +464,9 @@ def _dense_mask(points_m: FloatArray) -> NDArray[np.bool_]:
     sides)."""
     if len(points_m) <= 2 * _DENSITY_NEIGHBOURS:
         return np.ones(len(points_m), dtype=bool)
-    spacing = cKDTree(points_m).query(points_m, _DENSITY_NEIGHBOURS + 1)[0][:, -1]
+    # Only the k-th distance is asked for; an unbalanced tree builds and answers faster here.
+    tree = cKDTree(points_m, balanced_tree=False)
+    spacing = tree.query(points_m, [_DENSITY_NEIGHBOURS + 1])[0][:, 0]
     return np.asarray(spacing <= _DENSITY_KEEP_RATIO * np.median(spacing))
 
 
@@ -1033,9 +1035,11 @@ def fit_links(
     outlier_threshold_points: int,
     cluster_radius_m: float,
     previous: list[EMSResult] | None = None,
+    dense: BoolArray | None = None,
 ) -> list[EMSResult]:
     """Fit superquadrics to points [N, 3], one more at a time while the model selection of
-    :func:`_evidence_gain` prefers it (at most ``max_links``).
+    :func:`_evidence_gain` prefers it (at most ``max_links``; ``dense``: :func:`_dense_mask`
+    of the points [N], when known).
 
     With the links of an earlier fit of the same object (``previous``, the last view), those
     links are also refitted once, each from where it was, and kept when they explain the
@@ -1052,7 +1056,7 @@ def fit_links(
     """
     if max_links == 1:
         return [fit_superquadric(points_m, options)]
-    dense = _dense_mask(points_m)
+    dense = _dense_mask(points_m) if dense is None else dense
     starts = previous if previous is not None and 1 < len(previous) <= max_links else []
     warm = _link_sets(points_m, dense, _assign(points_m, starts), options) if starts else None
     if warm is None:
@@ -1100,10 +1104,14 @@ def _explained_points(link: EMSResult) -> int:
 
 
 def without_needless_shear(
-    points_m: FloatArray, links: list[EMSResult], options: EMSOptions
+    points_m: FloatArray,
+    links: list[EMSResult],
+    options: EMSOptions,
+    dense: BoolArray | None = None,
 ) -> list[EMSResult]:
     """``links`` fitted to points [N, 3], each sheared one refitted without its shear where
-    the shear lowers the surface NLL by less than ``options.shear_gain_nats`` per point.
+    the shear lowers the surface NLL by less than ``options.shear_gain_nats`` per point
+    (``dense``: :func:`_dense_mask` of the points [N], when known).
 
     A sheared ellipse is another ellipse, turned: an ellipse's fit can trade its yaw for a
     shear and lie up to 40 deg off the object's axes with nearly the same outline (over
@@ -1114,7 +1122,8 @@ def without_needless_shear(
     if not (options.taper and options.shear and sheared):
         return links
     plain = replace(options, shear=False)
-    sets = _link_sets(points_m, _dense_mask(points_m), _assign(points_m, links), plain)
+    dense = _dense_mask(points_m) if dense is None else dense
+    sets = _link_sets(points_m, dense, _assign(points_m, links), plain)
     if sets is None:
         return links
     refits = _fit_superquadrics(
@@ -1471,6 +1480,8 @@ class EMSEstimator(Component):
     def fit(self, cloud: PointCloud) -> ShapeEstimate:
         """Fit the object in ``cloud`` (world frame, table at z = 0 may be included)."""
         points = self._object_points(cloud)
+        # The multi-link search and the shear check share the dense points.
+        dense = _dense_mask(points) if self.config.max_links > 1 else None
         links = fit_links(
             points,
             self.options,
@@ -1478,8 +1489,9 @@ class EMSEstimator(Component):
             self.config.outlier_threshold_points,
             self.config.cluster_radius_m,
             self._previous_links,
+            dense,
         )
-        links = without_needless_shear(points, links, self.options)
+        links = without_needless_shear(points, links, self.options, dense)
         self._previous_links = links
         inlier = np.max([link.inlier_probability for link in links], axis=0) >= 0.5
         logger.info(
