@@ -41,6 +41,9 @@ class SimClock:
     def time_s(self) -> float:
         return float(self.world.time_s)
 
+    def start(self) -> None:
+        """Nothing to do: simulated time only moves when the world steps."""
+
     def advance(self, dt_s: float) -> None:
         self.world.step(dt_s)
 
@@ -56,6 +59,11 @@ class WallClock:
     @property
     def time_s(self) -> float:
         return time.monotonic()
+
+    def start(self) -> None:
+        """The first control period starts now: the set-up before (building the components,
+        which may take seconds) is not an overrun."""
+        self.deadline_s = time.monotonic()
 
     def advance(self, dt_s: float) -> None:
         self.deadline_s += dt_s

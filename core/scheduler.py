@@ -148,6 +148,7 @@ class Scheduler:
     def _tick_until_done(self, tree: py_trees.trees.BehaviourTree) -> str:
         root = tree.root
         self.ctx.hook.vistac_skill_start(run=self.ctx.info)
+        self.ctx.clock.start()
         start_s = self.ctx.time_s
         while True:
             tree.tick()

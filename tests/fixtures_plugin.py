@@ -4,6 +4,7 @@ be built and a selector that first sends the fingers down on the object."""
 
 from __future__ import annotations
 
+import time
 from typing import Any, ClassVar
 
 import numpy as np
@@ -26,11 +27,14 @@ class RecordingArm(Component):
     class Config(ComponentConfig):
         max_speed_mps: float = 0.025
         timestamp_s: float | None = None
+        build_s: float = 0.0
+        """How long building the arm takes (as a real driver's connection may)."""
 
     max_speed_mps = 0.025
 
     def __init__(self, config: Config, ctx: Any) -> None:
         super().__init__(config, ctx)
+        time.sleep(config.build_s)
         self.twist = np.zeros(4)
 
     def state(self) -> ArmState:

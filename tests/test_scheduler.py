@@ -109,6 +109,15 @@ def test_a_run_that_fails_while_it_sets_up_keeps_the_run_it_would_overwrite(
     assert before == {name: (tmp_path / "out" / name).read_text() for name in before}
 
 
+def test_the_set_up_is_not_a_control_period_overrun(tmp_path: Path, plugins: Plugins) -> None:
+    """On the wall clock, building the components (here an arm that takes 0.3 s to connect,
+    six 50 ms periods) is done before the first period starts."""
+    arm = "arm: {plugin: test.arm, with: {build_s: 0.3}}"
+    scheduler, result = _run(tmp_path, plugins, "  count: {ticks: 3}", arm, rate_hz=20)
+    assert result.status == "success" and scheduler.ticks == 3
+    assert result.summary["control_overruns"] == 0
+
+
 def test_max_duration_is_a_safety_stop(tmp_path: Path, plugins: Plugins) -> None:
     _, result = _run(tmp_path, plugins, "  - forever", max_duration_s=0.2, rate_hz=100)
     assert result.status == "error"
