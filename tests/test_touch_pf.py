@@ -245,6 +245,14 @@ def test_two_classes_with_one_name_are_a_config_error(
         build_components(estimator, tmp_path, skill_dir=tmp_path)
 
 
+def test_a_class_that_names_no_shape_is_a_config_error(tmp_path: Path) -> None:
+    """Refused when the skill is read, before the other classes are built, with the nearest
+    library name."""
+    estimator = {"estimator": {"plugin": "touch.pf", "with": {"classes": ["cone", "mugg"]}}}
+    with pytest.raises(ConfigError, match=r"'mugg' is no library shape.*did you mean 'mug'"):
+        build_components(estimator, tmp_path, skill_dir=tmp_path)
+
+
 @pytest.mark.parametrize(
     ("role", "spec"),
     [

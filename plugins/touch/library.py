@@ -354,6 +354,16 @@ def missing_shape(spec: str, base: Path | None = None) -> str | None:
     )
 
 
+def require_shape_in_skill(spec: str, skill_dir: Path | None) -> str:
+    """``spec`` as it is when it names a shape, a relative path taken from the skill's folder;
+    a ValueError (a config check's) saying why not otherwise. Without a skill's folder nothing
+    is checked: the component's build will."""
+    problem = missing_shape(spec, skill_dir) if skill_dir is not None else None
+    if problem:
+        raise ValueError(f"{problem}; a relative path is taken from the skill's folder")
+    return spec
+
+
 def resolve_shape(spec: str, base: Path | None = None) -> Mesh:
     """A known class or novel variant (largest extent 0.2 m, centred), or a mesh file path
     (relative to ``base``) read as saved by :func:`load_class`."""

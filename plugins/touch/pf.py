@@ -23,11 +23,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 from scipy.spatial.transform import Rotation
 from scipy.special import log_ndtr
 from vistac.component import Component, ComponentConfig, ComponentContext
-from vistac.plugins.touch.library import KNOWN, resolve_shape, shape_name
+from vistac.plugins.touch.library import KNOWN, require_shape_in_skill, resolve_shape, shape_name
 from vistac.plugins.touch.meshes import GridSDF, Mesh, apply_pose, transform_sdf, trilinear
 from vistac.plugins.touch.ppf import PpfTable, Quantisation, align_pairs, point_pair_features
 from vistac.plugins.touch.types import MlePrior
@@ -188,9 +188,14 @@ class TouchParticleFilter(Component):
 
         @field_validator("classes")
         @classmethod
-        def _names_unique(cls, specs: list[str]) -> list[str]:
+        def _names_unique(cls, specs: list[str], info: ValidationInfo) -> list[str]:
+            """At least one class, each a library name or (in a skill) a mesh file that exists,
+            relative to the skill's folder, with unique names: checked before anything is
+            built."""
             if not specs:
                 raise ValueError("touch.pf needs at least one known class")
+            for spec in specs:
+                require_shape_in_skill(spec, (info.context or {}).get("skill_dir"))
             clash = _name_clash(specs)
             if clash is not None:
                 raise ValueError(clash)

@@ -49,13 +49,9 @@ class SimTouchProbe(Component):
             """In a skill, a library name or a mesh file that exists, checked before anything
             is built (a relative path is taken from the skill's folder, as the probe takes
             it); without a skill's folder the probe's build checks it."""
-            from vistac.plugins.touch.library import missing_shape
+            from vistac.plugins.touch.library import require_shape_in_skill
 
-            skill_dir = (info.context or {}).get("skill_dir")
-            problem = missing_shape(value, skill_dir) if skill_dir is not None else None
-            if problem:
-                raise ValueError(f"{problem}; a relative path is taken from the skill's folder")
-            return value
+            return require_shape_in_skill(value, (info.context or {}).get("skill_dir"))
 
     def __init__(self, config: Config, ctx: ComponentContext) -> None:
         from vistac.plugins.touch.library import resolve_shape
