@@ -179,6 +179,60 @@ def test_random_chains_obey_statics(n_links: int) -> None:
     assert turned > 10, "some hinges turn"
 
 
+def _push_problems(n_links: int, seed: int) -> list[chain.ChainProblem]:
+    """The minimum-power problems (sticking, then the friction cone's edges) that
+    ``push_motion`` solves for 150 random chains."""
+    case = random_chains(150, n_links, seed)
+    links = _links(case["com"], case["joints"], case["c"], case["f_max"], case["tau"])
+    pick = torch.arange(150)
+    rows = chain.point_velocity_rows(
+        links.twist_map[pick, case["link"]], case["com"][pick, case["link"]], case["contact"]
+    )
+    problems: list[chain.ChainProblem] = []
+    solve = chain.solve_chain
+
+    def recorded(problem: chain.ChainProblem, eta: float = chain.SMOOTHING) -> Tensor:
+        problems.append(problem)
+        return solve(problem, eta)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(chain, "solve_chain", recorded)
+        chain.push_motion(links, rows, case["normal"], case["velocity"], 0.4)
+    return problems
+
+
+@pytest.mark.parametrize("n_links", [2, 3])
+def test_newton_stops_when_every_point_is_solved(
+    n_links: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each point stops at its own convergence: the sticking batch ends before NEWTON_STEPS
+    iterations, the minima are those of running every point to NEWTON_STEPS (to 1e-7 of the
+    unit-speed motion), and a point solved alone gives what it gives in its batch."""
+    calls = [0]
+    gradient_hessian = chain._gradient_hessian
+
+    def counted(*args: object) -> tuple[Tensor, Tensor]:
+        calls[0] += 1
+        return gradient_hessian(*args)  # type: ignore[arg-type]
+
+    problems, iterations = _push_problems(n_links, seed=10 + n_links), []
+    monkeypatch.setattr(chain, "_gradient_hessian", counted)
+    for problem in problems:
+        calls[0] = 0
+        z = chain.solve_chain(problem)
+        iterations.append(calls[0])
+        with monkeypatch.context() as patch:  # every point to the end: only a stay stops it
+            patch.setattr(chain, "NEWTON_TOLERANCE", -1.0)
+            close(z, chain.solve_chain(problem), 1e-7)
+        batch = problem.rows.shape[:-2]
+        points = chain.ChainProblem(
+            *(field.reshape(-1, *field.shape[len(batch) :]) for field in problem[:7])
+        )
+        for k in (0, 7, 149):
+            alone = chain.ChainProblem(*(field[k : k + 1] for field in points[:7]))
+            close(chain.solve_chain(alone)[0], z.reshape(-1, z.shape[-1])[k], 1e-12)
+    assert iterations[0] < chain.NEWTON_STEPS, "the sticking batch stops before the cap"
+
 def chain_scenario(
     tau_nm: float, pd_rad: float = 0.0, is_pull: float = 0.0, second_theta: float = 0.0
 ) -> tuple[Tensor, ProcessInput]:

@@ -60,7 +60,12 @@ from vistac.plugins.filters.nets import perp, rotate
 from vistac.plugins.filters.state import GRAVITY_MPS2, ProcessInput, StateLayout
 
 NEWTON_STEPS = 30
-"""Newton iterations (fixed: the same work for every point of a batch)."""
+"""Newton iterations at most."""
+NEWTON_TOLERANCE = 1e-8
+"""A point of a batch is solved once its full Newton step is at most this in every entry of
+z (about unit scale: the motion scaled to unit speed); quadratic convergence leaves it much
+closer than that to the minimum. A point is also left where it is once the line search takes
+no step: every later iteration would repeat that one."""
 STEP_SIZES = (*(0.5**k for k in range(0, 16, 2)), 0.0)
 """Line search: the step of these fractions of the Newton step that lowers the power most
 (0: none does, stay)."""
@@ -200,7 +205,9 @@ def _gradient_hessian(problem: ChainProblem, z: Tensor, eta: float) -> tuple[Ten
 def solve_chain(problem: ChainProblem, eta: float = SMOOTHING) -> Tensor:
     """The minimum-power z [..., n] with A z = a (see the module docstring): Newton's method
     on the KKT system from the feasible point nearest 0, each step the one of STEP_SIZES that
-    lowers the power most."""
+    lowers the power most, until every point of the batch is solved (NEWTON_TOLERANCE, at
+    most NEWTON_STEPS steps). A solved point is not moved again, so its result does not
+    depend on the other points of the batch."""
     n = problem.rows.shape[-1]
     rows = torch.where(problem.used.unsqueeze(-1), problem.rows, 0.0)
     unused = torch.diag_embed((~problem.used).to(rows.dtype))
@@ -208,6 +215,7 @@ def solve_chain(problem: ChainProblem, eta: float = SMOOTHING) -> Tensor:
     steps = torch.tensor(STEP_SIZES, dtype=rows.dtype).reshape(-1, *([1] * (rows.dim() - 1)))
     z = torch.zeros_like(rows[..., 0, :])
     gradient, hessian = z, torch.diag_embed(torch.ones_like(z))
+    solved = torch.zeros_like(z[..., 0], dtype=torch.bool)
     for iteration in range(NEWTON_STEPS + 1):
         if iteration:
             gradient, hessian = _gradient_hessian(problem, z, eta)
@@ -222,7 +230,12 @@ def solve_chain(problem: ChainProblem, eta: float = SMOOTHING) -> Tensor:
             continue
         trials = z + steps * step  # the last step size is 0: stay
         best = power(problem, trials, eta).argmin(0, keepdim=True)
-        z = trials.gather(0, best.unsqueeze(-1).expand(1, *z.shape))[0]
+        moved = trials.gather(0, best.unsqueeze(-1).expand(1, *z.shape))[0]
+        z = torch.where(solved.unsqueeze(-1), z, moved)
+        stays = best[0] == len(STEP_SIZES) - 1
+        solved = solved | stays | (step.abs().amax(-1) <= NEWTON_TOLERANCE)
+        if bool(solved.all()):
+            break
     return z
 
 
