@@ -45,6 +45,7 @@ quasi_static_push` gives the same twist; ``tests/test_filters_chain.py``).
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -174,10 +175,30 @@ def _turns(problem: ChainProblem, z: Tensor, eta: float) -> tuple[Tensor, Tensor
 def power(problem: ChainProblem, z: Tensor, eta: float = SMOOTHING) -> Tensor:
     """The smoothed dissipated power [...] of z [..., n] (each link's norm smoothed by eta,
     each hinge's and the grasp's rate by eta / 5 cm)."""
-    scaled = _scaled(problem, z)
+    _, turn, _, friction = _turns(problem, z, eta)
+    return _dissipation(problem, _scaled(problem, z), turn, friction, eta)
+
+
+def _dissipation(
+    problem: ChainProblem, scaled: Tensor, turn: Tensor, friction: Tensor, eta: float
+) -> Tensor:
+    """The smoothed power [...] of links moving with ``_scaled`` twists [..., L, 3] and of
+    rates turn [..., m] against friction [..., m] (see ``_turns``)."""
     norm = torch.sqrt((scaled * scaled).sum(-1) + eta * eta)
-    _, _, magnitude, friction = _turns(problem, z, eta)
+    magnitude = torch.sqrt(turn * turn + (eta / _ARM_M) ** 2)
     return (problem.f_max_n * norm).sum(-1) + (friction * magnitude).sum(-1)
+
+
+def _powers_along(
+    problem: ChainProblem, z: Tensor, step: Tensor, fractions: Tensor, eta: float
+) -> Tensor:
+    """The power [S, B] of z + f step (z, step [B, n]) for each of fractions [S]: the twists
+    and the rates are linear in z, so each is worked out for z and for the step once."""
+    rows, turn, _, friction = _turns(problem, z, eta)
+    along = fractions.reshape(-1, 1, 1)
+    scaled = _scaled(problem, z) + along.unsqueeze(-1) * _scaled(problem, step)
+    turns = turn + along * (rows @ step.unsqueeze(-1))[..., 0]
+    return _dissipation(problem, scaled, turns, friction, eta)
 
 
 def _gradient_hessian(problem: ChainProblem, z: Tensor, eta: float) -> tuple[Tensor, Tensor]:
@@ -202,41 +223,87 @@ def _gradient_hessian(problem: ChainProblem, z: Tensor, eta: float) -> tuple[Ten
     return gradient, hessian
 
 
+_POINT_DIMS = (3, 1, 1, 1, 2, 1, 1, 1, 0, 0)
+"""The dimensions of each ChainProblem field after its batch dimensions."""
+
+
+def _points(problem: ChainProblem) -> tuple[ChainProblem, tuple[int, ...]]:
+    """The problem with every field broadcast to the batch shape and flattened to one point
+    per row [B, ...], and the batch shape."""
+    present = [
+        (index, field, field.shape[field.dim() - dims :])
+        for index, (field, dims) in enumerate(zip(problem, _POINT_DIMS, strict=True))
+        if field is not None
+    ]
+    batch = torch.broadcast_shapes(*(f.shape[: f.dim() - len(per)] for _, f, per in present))
+    flat: list[Tensor | None] = [None] * len(problem)
+    for index, field, per in present:
+        flat[index] = field.expand(*batch, *per).reshape(math.prod(batch), *per)
+    return ChainProblem._make(flat), tuple(batch)
+
+
+def _take(problem: ChainProblem, index: Tensor) -> ChainProblem:
+    """The points ``index`` [k] of a flattened problem (see ``_points``)."""
+    return ChainProblem._make(None if field is None else field[index] for field in problem)
+
+
+class _Constraints(NamedTuple):
+    """The equality constraints of flattened points as the KKT system takes them: rows
+    [B, 3, n] (unused ones zero), target [B, 3] (unused ones zero) and unused [B, 3, 3] (the
+    identity on the unused rows, so that the system stays regular)."""
+
+    rows: Tensor
+    target: Tensor
+    unused: Tensor
+
+    @classmethod
+    def of(cls, points: ChainProblem) -> _Constraints:
+        used = points.used
+        rows = torch.where(used.unsqueeze(-1), points.rows, 0.0)
+        return cls(
+            rows, torch.where(used, points.target, 0.0), torch.diag_embed((~used).to(rows.dtype))
+        )
+
+    def take(self, index: Tensor) -> _Constraints:
+        return _Constraints(*(field[index] for field in self))
+
+    def newton_step(self, z: Tensor, gradient: Tensor, hessian: Tensor) -> Tensor:
+        """The step [B, n] from z [B, n] that solves the KKT system of the quadratic model
+        (gradient [B, n], hessian [B, n, n]) and the constraints."""
+        residual = self.target - (self.rows @ z.unsqueeze(-1))[..., 0]
+        upper = torch.cat([hessian, self.rows.transpose(-1, -2)], -1)
+        kkt = torch.cat([upper, torch.cat([self.rows, self.unused], -1)], -2)
+        return torch.linalg.solve(kkt, torch.cat([-gradient, residual], -1))[..., : z.shape[-1]]
+
+
 def solve_chain(problem: ChainProblem, eta: float = SMOOTHING) -> Tensor:
     """The minimum-power z [..., n] with A z = a (see the module docstring): Newton's method
     on the KKT system from the feasible point nearest 0, each step the one of STEP_SIZES that
     lowers the power most, until every point of the batch is solved (NEWTON_TOLERANCE, at
-    most NEWTON_STEPS steps). A solved point is not moved again, so its result does not
-    depend on the other points of the batch."""
-    n = problem.rows.shape[-1]
-    rows = torch.where(problem.used.unsqueeze(-1), problem.rows, 0.0)
-    unused = torch.diag_embed((~problem.used).to(rows.dtype))
-    target = torch.where(problem.used, problem.target, 0.0)
-    steps = torch.tensor(STEP_SIZES, dtype=rows.dtype).reshape(-1, *([1] * (rows.dim() - 1)))
-    z = torch.zeros_like(rows[..., 0, :])
-    gradient, hessian = z, torch.diag_embed(torch.ones_like(z))
-    solved = torch.zeros_like(z[..., 0], dtype=torch.bool)
-    for iteration in range(NEWTON_STEPS + 1):
-        if iteration:
-            gradient, hessian = _gradient_hessian(problem, z, eta)
-            hessian = hessian + _TINY * torch.eye(n, dtype=z.dtype)
-        residual = target - (rows @ z.unsqueeze(-1))[..., 0]
-        kkt = torch.cat(
-            [torch.cat([hessian, rows.transpose(-1, -2)], -1), torch.cat([rows, unused], -1)], -2
-        )
-        step = torch.linalg.solve(kkt, torch.cat([-gradient, residual], -1))[..., :n]
-        if not iteration:  # the nearest feasible point
-            z = step
-            continue
-        trials = z + steps * step  # the last step size is 0: stay
-        best = power(problem, trials, eta).argmin(0, keepdim=True)
-        moved = trials.gather(0, best.unsqueeze(-1).expand(1, *z.shape))[0]
-        z = torch.where(solved.unsqueeze(-1), z, moved)
-        stays = best[0] == len(STEP_SIZES) - 1
-        solved = solved | stays | (step.abs().amax(-1) <= NEWTON_TOLERANCE)
-        if bool(solved.all()):
-            break
-    return z
+    most NEWTON_STEPS steps). A solved point leaves the batch, so its result does not depend
+    on the other points, and the iterations that only a few points need cost little."""
+    points, batch = _points(problem)
+    constraints = _Constraints.of(points)
+    n = constraints.rows.shape[-1]
+    fractions = torch.tensor(STEP_SIZES, dtype=constraints.rows.dtype)
+    zero = torch.zeros_like(constraints.rows[:, 0, :])
+    z = constraints.newton_step(zero, zero, torch.diag_embed(torch.ones_like(zero)))
+    active, moving = torch.arange(len(z)), z
+    for _ in range(NEWTON_STEPS):
+        gradient, hessian = _gradient_hessian(points, moving, eta)
+        hessian = hessian + _TINY * torch.eye(n, dtype=z.dtype)
+        step = constraints.newton_step(moving, gradient, hessian)
+        best = _powers_along(points, moving, step, fractions, eta).argmin(0)
+        moving = moving + fractions[best].unsqueeze(-1) * step  # the last fraction 0: stay
+        solved = (best == len(STEP_SIZES) - 1) | (step.abs().amax(-1) <= NEWTON_TOLERANCE)
+        if bool(solved.any()):
+            z = z.index_copy(0, active, moving)
+            left = torch.nonzero(~solved)[:, 0]
+            active, moving = active[left], moving[left]
+            points, constraints = _take(points, left), constraints.take(left)
+            if not len(active):
+                break
+    return z.index_copy(0, active, moving).reshape(*batch, n)
 
 
 def friction_wrench(problem: ChainProblem, z: Tensor, eta: float = SMOOTHING) -> Tensor:
