@@ -233,6 +233,26 @@ def test_newton_stops_when_every_point_is_solved(
             close(chain.solve_chain(alone)[0], z.reshape(-1, z.shape[-1])[k], 1e-12)
     assert iterations[0] < chain.NEWTON_STEPS, "the sticking batch stops before the cap"
 
+@pytest.mark.parametrize("n_links", [2, 3])
+def test_the_line_search_weighs_the_power_of_each_trial(n_links: int) -> None:
+    """The line search's powers, worked out from z and the step once, are those of ``power``
+    at each trial point z + f step, with and without a grasp that lets a link turn."""
+    generator = torch.Generator().manual_seed(n_links)
+    for problem in _push_problems(n_links, seed=20 + n_links):
+        points, _ = chain._points(problem)
+        count, n = points.rows.shape[0], points.rows.shape[-1]
+        grasped = points._replace(
+            grasp_row=torch.randn(count, n, dtype=DTYPE, generator=generator),
+            grasp_rate=torch.randn(count, dtype=DTYPE, generator=generator),
+            grasp_friction_nm=torch.rand(count, dtype=DTYPE, generator=generator),
+        )
+        z, step = torch.randn(2, count, n, dtype=DTYPE, generator=generator)
+        fractions = torch.tensor(chain.STEP_SIZES, dtype=DTYPE)
+        trials = z + fractions.reshape(-1, 1, 1) * step
+        for case in (points, grasped):
+            along = chain._powers_along(case, z, step, fractions, chain.SMOOTHING)
+            torch.testing.assert_close(along, chain.power(case, trials), rtol=1e-12, atol=0)
+
 def chain_scenario(
     tau_nm: float, pd_rad: float = 0.0, is_pull: float = 0.0, second_theta: float = 0.0
 ) -> tuple[Tensor, ProcessInput]:
