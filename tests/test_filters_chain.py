@@ -224,14 +224,12 @@ def test_newton_stops_when_every_point_is_solved(
         with monkeypatch.context() as patch:  # every point to the end: only a stay stops it
             patch.setattr(chain, "NEWTON_TOLERANCE", -1.0)
             close(z, chain.solve_chain(problem), 1e-7)
-        batch = problem.rows.shape[:-2]
-        points = chain.ChainProblem(
-            *(field.reshape(-1, *field.shape[len(batch) :]) for field in problem[:7])
-        )
+        points, _ = chain._points(problem)
         for k in (0, 7, 149):
-            alone = chain.ChainProblem(*(field[k : k + 1] for field in points[:7]))
-            close(chain.solve_chain(alone)[0], z.reshape(-1, z.shape[-1])[k], 1e-12)
+            alone = chain.solve_chain(chain._take(points, torch.tensor([k])))
+            close(alone[0], z.reshape(-1, z.shape[-1])[k], 1e-12)
     assert iterations[0] < chain.NEWTON_STEPS, "the sticking batch stops before the cap"
+
 
 @pytest.mark.parametrize("n_links", [2, 3])
 def test_the_line_search_weighs_the_power_of_each_trial(n_links: int) -> None:
@@ -252,6 +250,7 @@ def test_the_line_search_weighs_the_power_of_each_trial(n_links: int) -> None:
         for case in (points, grasped):
             along = chain._powers_along(case, z, step, fractions, chain.SMOOTHING)
             torch.testing.assert_close(along, chain.power(case, trials), rtol=1e-12, atol=0)
+
 
 def chain_scenario(
     tau_nm: float, pd_rad: float = 0.0, is_pull: float = 0.0, second_theta: float = 0.0
