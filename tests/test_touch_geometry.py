@@ -87,9 +87,9 @@ def test_box_sdf_and_its_grid_match_the_analytic_distance() -> None:
 
 
 def test_grid_sdf_interpolates_a_linear_field_exactly_and_extends_outside() -> None:
-    """Trilinear interpolation reproduces a linear distance inside the grid; outside, the
-    nearest grid value plus the distance to the grid box; ``distance`` agrees with the full
-    query."""
+    """Trilinear interpolation reproduces a linear distance inside the grid, its corners
+    included; outside, the nearest grid value plus the distance to the grid box; ``distance``
+    agrees with the full query."""
     axes = np.arange(5) * 0.1
     x, y, z = np.meshgrid(axes, axes, axes, indexing="ij")
     distance = 0.3 * x - 0.2 * y + 0.1 * z
@@ -97,6 +97,7 @@ def test_grid_sdf_interpolates_a_linear_field_exactly_and_extends_outside() -> N
     grid = GridSDF(np.zeros(3), 0.1, distance, normals)
     rng = np.random.default_rng(0)
     inside = rng.uniform(0.0, 0.4, size=(2, 7, 3))
+    inside[1, -2:] = [[0.4, 0.4, 0.4], [0.0, 0.4, 0.0]]  # on the last cells
     got, got_normals = grid(inside)
     assert got.shape == (2, 7) and got_normals.shape == (2, 7, 3)
     np.testing.assert_allclose(got, inside @ [0.3, -0.2, 0.1], atol=1e-6)

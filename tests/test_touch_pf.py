@@ -52,7 +52,7 @@ def test_stochastic_universal_sampling_keeps_heavy_particles() -> None:
 
 def test_the_stacked_class_grids_give_each_class_grid_values() -> None:
     """Points of particles of mixed classes, inside and outside the grid boxes, get the values
-    of their own class's GridSDF: distance (to float32 rounding) and unit normals."""
+    of their own class's GridSDF: distance and unit normals."""
     meshes = [known_class(name) for name in ("mug", "guitar", "cone")]
     grids = ClassGrids([mesh.grid_sdf for mesh in meshes])
     rng = np.random.default_rng(3)

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from numpy.typing import NDArray
-from scipy.ndimage import map_coordinates
 from vistac.errors import DataError
 from vistac.plugins.touch.types import SignedDistance
 from vistac.types import FloatArray
@@ -148,16 +148,26 @@ class MeshSDF:
         )
 
 
-def trilinear(volume: FloatArray, coordinates: FloatArray) -> FloatArray:
-    """Trilinear values [M] (float64) of volume [X, Y, Z] at grid coordinates [3, M] (clamped
-    to the grid by the caller; beyond it, the nearest grid value)."""
-    values = map_coordinates(volume, coordinates, order=1, mode="nearest", prefilter=False)
-    return np.asarray(values, dtype=np.float64)
+def trilinear(volumes: torch.Tensor, coordinates: FloatArray) -> FloatArray:
+    """Trilinear values [K, M] (float64) of the K channels of volumes [K, X, Y, Z] (float64,
+    at least 2 cells along each axis) at grid coordinates [3, M] (in cells, within the grid:
+    clamped by the caller).
+
+    One ``torch.nn.functional.grid_sample`` for all channels: it takes the points in the
+    volume's (Z, Y, X) order, scaled so that -1 and 1 are the first and last cells
+    (``align_corners``); ``border`` padding only keeps points that rounding puts a hair
+    beyond the last cell on it."""
+    cells = np.array(volumes.shape[1:], dtype=np.float64)
+    scaled = coordinates[::-1].T * (2.0 / (cells[::-1] - 1.0)) - 1.0  # [M, 3]
+    grid = torch.from_numpy(np.ascontiguousarray(scaled)).view(1, 1, 1, -1, 3)
+    values = torch.nn.functional.grid_sample(
+        volumes[None], grid, mode="bilinear", padding_mode="border", align_corners=True
+    )
+    return values.view(len(volumes), -1).numpy()
 
 
 class GridSDF:
-    """A signed distance sampled on a regular grid, interpolated trilinearly
-    (``scipy.ndimage.map_coordinates``, order 1).
+    """A signed distance sampled on a regular grid, interpolated trilinearly (``trilinear``).
 
     Queries outside the grid get the value at the nearest grid point plus the distance to the
     grid box (never smaller than the true distance there by more than the grid's margin)."""
@@ -203,22 +213,33 @@ class GridSDF:
         """[4, X, Y, Z] float32: the distance (m), then the normal's x, y and z (read only)."""
         return self._volumes
 
-    def _interpolate(self, channel: int, coordinates: FloatArray) -> FloatArray:
-        return trilinear(self._volumes[channel], coordinates)
+    @cached_property
+    def _interpolated(self) -> torch.Tensor:
+        """The volumes as a float64 tensor [4, X, Y, Z], made at the first query."""
+        return torch.from_numpy(self._volumes.astype(np.float64))
 
     def distance(self, points: FloatArray) -> FloatArray:
         """points [..., 3] -> signed distance [...] in m (no normals: a quarter of the work)."""
         coordinates, outside_m = self._grid_coordinates(points)
-        return (self._interpolate(0, coordinates) + outside_m).reshape(np.shape(points)[:-1])
+        distance = trilinear(self._interpolated[:1], coordinates)[0] + outside_m
+        return distance.reshape(np.shape(points)[:-1])
 
     def __call__(self, points: FloatArray) -> tuple[FloatArray, FloatArray]:
         """points [..., 3] -> signed distance [...] in m, unit outward normals [..., 3]."""
         lead = np.shape(points)[:-1]
         coordinates, outside_m = self._grid_coordinates(points)
-        normals = np.stack([self._interpolate(axis, coordinates) for axis in (1, 2, 3)], axis=-1)
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        distance = self._interpolate(0, coordinates) + outside_m
-        return distance.reshape(lead), normals.reshape(*lead, 3)
+        return split_normals(trilinear(self._interpolated, coordinates), outside_m, lead)
+
+
+def split_normals(
+    values: FloatArray, outside_m: FloatArray, lead: tuple[int, ...]
+) -> tuple[FloatArray, FloatArray]:
+    """The distance [*lead] in m and unit normals [*lead, 3] from interpolated values [4, M]
+    (distance, normal x, y, z) of points outside_m [M] (or [*lead]) from the grid box."""
+    normals = values[1:].T
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    distance = values[0].reshape(lead) + np.reshape(outside_m, lead)
+    return distance, normals.reshape(*lead, 3)
 
 
 def transform_sdf(sdf: SignedDistance, world_from_object: FloatArray) -> SignedDistance:

@@ -23,12 +23,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from pydantic import Field, ValidationInfo, field_validator
 from scipy.spatial.transform import Rotation
 from scipy.special import log_ndtr
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.plugins.touch.library import KNOWN, require_shape_in_skill, resolve_shape, shape_name
-from vistac.plugins.touch.meshes import GridSDF, Mesh, apply_pose, transform_sdf, trilinear
+from vistac.plugins.touch.meshes import (
+    GridSDF,
+    Mesh,
+    apply_pose,
+    split_normals,
+    transform_sdf,
+    trilinear,
+)
 from vistac.plugins.touch.ppf import PpfTable, Quantisation, align_pairs, point_pair_features
 from vistac.plugins.touch.types import MlePrior
 from vistac.types import FloatArray
@@ -80,8 +88,8 @@ class ShapeClass:
 
 class ClassGrids:
     """The signed distance grids (``GridSDF``) of all classes side by side along x, one volume
-    per channel (distance, normal x, y, z), so that the points of particles of mixed classes are
-    interpolated in one ``map_coordinates`` call per channel. Each class's points are clamped to
+    of four channels (distance, normal x, y, z), so that the points of particles of mixed classes
+    are interpolated in one ``trilinear`` call. Each class's points are clamped to
     its own grid box, so the values are its ``GridSDF``'s (to rounding in the last bits of the
     grid coordinates, which are shifted by the class's whole-cell offset along x)."""
 
@@ -91,10 +99,10 @@ class ClassGrids:
         self._top = (shapes - 1).astype(np.float64)  # [C, 3] last grid coordinate
         self._origin_m = np.array([grid.origin_m for grid in grids])  # [C, 3]
         self._step_m = np.array([grid.step_m for grid in grids])  # [C]
-        volumes = np.zeros((4, shapes[:, 0].sum(), *shapes[:, 1:].max(axis=0)), np.float32)
+        volumes = np.zeros((4, shapes[:, 0].sum(), *shapes[:, 1:].max(axis=0)), np.float64)
         for grid, start, (x, y, z) in zip(grids, self._x_offset.astype(int), shapes, strict=True):
             volumes[:, start : start + x, :y, :z] = grid.volumes
-        self._volumes = volumes
+        self._volumes = torch.from_numpy(volumes)
         self._face_min_m = np.array([_face_min(grid.volumes[0]) for grid in grids])  # [C]
 
     def _coordinates(self, cls: Any, local_m: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -109,10 +117,6 @@ class ClassGrids:
         coordinates[0] += np.repeat(self._x_offset[cls], local_m.shape[1])
         return coordinates, outside_m
 
-    def _interpolate(self, channel: int, coordinates: FloatArray) -> FloatArray:
-        """Trilinear values [M] of one channel at stacked grid coordinates [3, M]."""
-        return trilinear(self._volumes[channel], coordinates)
-
     def distance(self, cls: Any, local_m: FloatArray, far_m: float = np.inf) -> FloatArray:
         """Signed distance [N, K] in m of points local_m [N, K, 3] in the frame of class
         cls [N] (as ``GridSDF.distance``). A point outside its grid box whose distance is at
@@ -121,17 +125,15 @@ class ClassGrids:
         coordinates, outside_m = self._coordinates(cls, local_m)
         distance_m = (outside_m + self._face_min_m[cls][:, None]).ravel()
         near = np.flatnonzero(distance_m < far_m)
-        distance_m[near] = self._interpolate(0, coordinates[:, near]) + outside_m.ravel()[near]
+        distance = trilinear(self._volumes[:1], coordinates[:, near])[0]
+        distance_m[near] = distance + outside_m.ravel()[near]
         return distance_m.reshape(outside_m.shape)
 
     def __call__(self, cls: Any, local_m: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Signed distance [N, K] in m and unit outward normals [N, K, 3] of points local_m
         [N, K, 3] in the frame of class cls [N] (as ``GridSDF.__call__``)."""
         coordinates, outside_m = self._coordinates(cls, local_m)
-        normals = np.stack([self._interpolate(axis, coordinates) for axis in (1, 2, 3)], -1)
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        distance = self._interpolate(0, coordinates).reshape(outside_m.shape) + outside_m
-        return distance, normals.reshape(*local_m.shape)
+        return split_normals(trilinear(self._volumes, coordinates), outside_m, outside_m.shape)
 
 
 @dataclass
