@@ -12,14 +12,16 @@ import logging
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 from numpy.typing import NDArray
 from vistac.errors import DataError
 from vistac.plugins.touch.types import SignedDistance
 from vistac.types import FloatArray
+
+if TYPE_CHECKING:
+    import torch  # imported where used: loading and probing meshes need no torch
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +159,8 @@ def trilinear(volumes: torch.Tensor, coordinates: FloatArray) -> FloatArray:
     volume's (Z, Y, X) order, scaled so that -1 and 1 are the first and last cells
     (``align_corners``); ``border`` padding only keeps points that rounding puts a hair
     beyond the last cell on it."""
+    import torch
+
     cells = np.array(volumes.shape[1:], dtype=np.float64)
     scaled = coordinates[::-1].T * (2.0 / (cells[::-1] - 1.0)) - 1.0  # [M, 3]
     grid = torch.from_numpy(np.ascontiguousarray(scaled)).view(1, 1, 1, -1, 3)
@@ -216,6 +220,8 @@ class GridSDF:
     @cached_property
     def _interpolated(self) -> torch.Tensor:
         """The volumes as a float64 tensor [4, X, Y, Z], made at the first query."""
+        import torch
+
         return torch.from_numpy(self._volumes.astype(np.float64))
 
     def distance(self, points: FloatArray) -> FloatArray:
