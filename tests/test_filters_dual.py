@@ -28,6 +28,7 @@ from vistac.plugins.filters.dual import (
     paired_fit_noise,
     parameter_fit,
     project_feasible,
+    require_finite,
     sample_sigma_points,
     standardise_noise,
     truncate_negative_means,
@@ -674,6 +675,29 @@ def test_nan_raises_a_data_error_naming_the_entry() -> None:
         toy_filter(10).step(
             Belief(mean, prior_belief().cov), make_inputs(), DT_S, observation, generator
         )
+
+
+@pytest.mark.parametrize(
+    ("bad", "message"),
+    [
+        ({(2, 1): math.nan}, r"v\[b\] = nan at leading index \(2,\)"),
+        ({(2, 1): math.inf}, r"v\[b\] = inf at leading index \(2,\)"),
+        ({(0, 0): -math.inf, (2, 1): math.inf}, r"v\[a\] = -inf at leading index \(0,\)"),
+    ],
+)
+def test_require_finite_names_the_first_bad_entry(bad: dict, message: str) -> None:
+    """A NaN, an inf, or an inf and a -inf that cancel into a NaN in a sum: the first is
+    named by entry and leading index."""
+    values = torch.ones(3, 2, dtype=DTYPE)
+    for index, value in bad.items():
+        values[index] = value
+    with pytest.raises(DataError, match=message):
+        require_finite(values, "v", ("a", "b"))
+
+
+def test_require_finite_passes_finite_values_whose_sum_overflows() -> None:
+    require_finite(torch.zeros(0, dtype=DTYPE), "empty")
+    require_finite(torch.full((3, 2), 1e308, dtype=DTYPE), "large")
 
 
 class TableAndNan(LinearObservation):

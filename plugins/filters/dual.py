@@ -107,9 +107,11 @@ def require_finite(
     The last ``entry_dims`` dimensions index entries (named by ``names`` when given), the
     leading ones are batch (and sigma point) dimensions.
     """
-    if bool(torch.isfinite(values.detach()).all()):
-        return
+    if bool(torch.isfinite(values.detach().sum())):
+        return  # a NaN or inf anywhere makes the sum one: one reduction, no mask
     bad = ~torch.isfinite(values.detach())
+    if not bool(bad.any()):
+        return  # finite values whose sum overflows
     index = [int(i) for i in bad.nonzero()[0]]
     leading, entry = index[: len(index) - entry_dims], index[len(index) - entry_dims :]
     labels = [names[i] if names is not None else str(i) for i in entry]
