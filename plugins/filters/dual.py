@@ -108,7 +108,7 @@ def require_finite(
     leading ones are batch (and sigma point) dimensions.
     """
     if bool(torch.isfinite(values.detach().sum())):
-        return  # a NaN or inf anywhere makes the sum one: one reduction, no mask
+        return  # a NaN or inf anywhere makes the sum non-finite: one reduction, no mask
     bad = ~torch.isfinite(values.detach())
     if not bool(bad.any()):
         return  # finite values whose sum overflows

@@ -88,10 +88,10 @@ class ShapeClass:
 
 class ClassGrids:
     """The signed distance grids (``GridSDF``) of all classes side by side along x, one volume
-    of four channels (distance, normal x, y, z), so that the points of particles of mixed classes
-    are interpolated in one ``trilinear`` call. Each class's points are clamped to
-    its own grid box, so the values are its ``GridSDF``'s (to rounding in the last bits of the
-    grid coordinates, which are shifted by the class's whole-cell offset along x)."""
+    of four channels (distance, normal x, y, z), so that the points of particles of mixed
+    classes are interpolated in one ``trilinear`` call. Each class's points are clamped to its
+    own grid box, so the values are its ``GridSDF``'s (to rounding in the last bits of the grid
+    coordinates, which are shifted by the class's whole-cell offset along x)."""
 
     def __init__(self, grids: list[GridSDF]) -> None:
         shapes = np.array([grid.shape for grid in grids])  # [C, 3] cells per axis
