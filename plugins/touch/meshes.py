@@ -152,7 +152,7 @@ class MeshSDF:
 
 def trilinear(volumes: torch.Tensor, coordinates: FloatArray) -> FloatArray:
     """Trilinear values [K, M] (float64) of the K channels of volumes [K, X, Y, Z] (float64,
-    at least 2 cells along each axis) at grid coordinates [3, M] (in cells, within the grid:
+    at least 2 cells along each axis) at grid coordinates [M, 3] (in cells, within the grid:
     clamped by the caller).
 
     One ``torch.nn.functional.grid_sample`` for all channels: it takes the points in the
@@ -162,8 +162,8 @@ def trilinear(volumes: torch.Tensor, coordinates: FloatArray) -> FloatArray:
     import torch
 
     cells = np.array(volumes.shape[1:], dtype=np.float64)
-    scaled = coordinates[::-1].T * (2.0 / (cells[::-1] - 1.0)) - 1.0  # [M, 3]
-    grid = torch.from_numpy(np.ascontiguousarray(scaled)).view(1, 1, 1, -1, 3)
+    scaled = coordinates[:, ::-1] * (2.0 / (cells[::-1] - 1.0)) - 1.0  # [M, 3], a new array
+    grid = torch.from_numpy(scaled).view(1, 1, 1, -1, 3)
     values = torch.nn.functional.grid_sample(
         volumes[None], grid, mode="bilinear", padding_mode="border", align_corners=True
     )
@@ -204,13 +204,13 @@ class GridSDF:
         return cls(low, step, distance.reshape(*counts), normals.reshape(*counts, 3))
 
     def _grid_coordinates(self, points: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Grid coordinates [3, N] of points [..., 3], clamped to the grid, and each point's
+        """Grid coordinates [N, 3] of points [..., 3], clamped to the grid, and each point's
         distance to the grid box [N] in m."""
         flat_m = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         scaled = (flat_m - self.origin_m) / self.step_m
         clamped = np.clip(scaled, 0.0, self.shape - 1)
         outside_m = np.linalg.norm(scaled - clamped, axis=1) * self.step_m
-        return np.ascontiguousarray(clamped.T), outside_m
+        return clamped, outside_m
 
     @property
     def volumes(self) -> FloatArray:

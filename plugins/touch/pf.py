@@ -106,15 +106,15 @@ class ClassGrids:
         self._face_min_m = np.array([_face_min(grid.volumes[0]) for grid in grids])  # [C]
 
     def _coordinates(self, cls: Any, local_m: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Stacked grid coordinates [3, N * K] of points local_m [N, K, 3] (object frame of
+        """Stacked grid coordinates [N * K, 3] of points local_m [N, K, 3] (object frame of
         class cls [N]), clamped to their class's grid, and each point's distance to that grid
         box [N, K] in m."""
         step_m = self._step_m[cls][:, None, None]
         scaled = (local_m - self._origin_m[cls][:, None]) / step_m
         clamped = np.clip(scaled, 0.0, self._top[cls][:, None])
         outside_m = np.linalg.norm(scaled - clamped, axis=-1) * step_m[..., 0]
-        coordinates = np.ascontiguousarray(clamped.reshape(-1, 3).T)
-        coordinates[0] += np.repeat(self._x_offset[cls], local_m.shape[1])
+        coordinates = clamped.reshape(-1, 3)  # a view of the fresh clipped array
+        coordinates[:, 0] += np.repeat(self._x_offset[cls], local_m.shape[1])
         return coordinates, outside_m
 
     def distance(self, cls: Any, local_m: FloatArray, far_m: float = np.inf) -> FloatArray:
@@ -125,7 +125,7 @@ class ClassGrids:
         coordinates, outside_m = self._coordinates(cls, local_m)
         distance_m = (outside_m + self._face_min_m[cls][:, None]).ravel()
         near = np.flatnonzero(distance_m < far_m)
-        distance = trilinear(self._volumes[:1], coordinates[:, near])[0]
+        distance = trilinear(self._volumes[:1], coordinates[near])[0]
         distance_m[near] = distance + outside_m.ravel()[near]
         return distance_m.reshape(outside_m.shape)
 
