@@ -16,9 +16,14 @@ from py_trees.common import Status
 from simctx import TestContext
 from vistac.behaviours.belief import record_belief
 from vistac.errors import ConfigError, DataError
-from vistac.plugins.actions.affordances import fingers_blocked, in_rectangle, inside_link
+from vistac.plugins.actions.affordances import (
+    fingers_blocked,
+    in_rectangle,
+    inside_link,
+    link_outline,
+)
 from vistac.plugins.actions.change import ChangeDetected, assess, auroc, window_means
-from vistac.plugins.actions.icem import ICEMController, colored_noise
+from vistac.plugins.actions.icem import ICEMController, colored_noise, joined_outline
 from vistac.plugins.filters.component import (
     known_parameters,
     load_prior_from,
@@ -221,6 +226,43 @@ def test_icem_keeps_the_fingers_off_the_other_links(tmp_path: Path) -> None:
     wide = _controller(tmp_path, (0.0, 0.45, 0.0), finger_clearance_m=0.05, **options)
     with pytest.raises(DataError, match="finger_clearance_m"):
         wide.plan(Scene(one_link.cloud, two), goal, np.random.default_rng(0))
+
+
+def test_joined_outline_is_the_outer_outline_of_touching_links() -> None:
+    """Two boxes overlapping by 5 mm and a third apart: the outline of the first two goes
+    round both (from -85 to +90 mm in x), leaves out the seam inside them, runs
+    counter-clockwise with outward normals, and leaves the third out; a link alone keeps its
+    own outline."""
+    left, right, apart = _box((-0.04, 0.45)), _box((0.045, 0.45)), _box((0.3, 0.45))
+    points, normals = joined_outline([left, right, apart], 0)
+    assert points[:, 0].min() == pytest.approx(-0.085, abs=1e-3)
+    assert points[:, 0].max() == pytest.approx(0.09, abs=1e-3)
+    seam = (np.abs(points[:, 0] - 0.0025) < 0.002) & (np.abs(points[:, 1] - 0.45) < 0.04)
+    assert not seam.any()
+    offset = points - points.mean(axis=0)
+    assert np.all(np.diff(np.arctan2(offset[:, 1], offset[:, 0])) >= 0)
+    assert np.all(np.einsum("ij,ij->i", offset, normals) > 0)
+    alone, _ = joined_outline([left, apart], 0)
+    own, _ = link_outline(left)
+    assert np.allclose(np.sort(alone, axis=0), np.sort(own, axis=0))
+
+
+def test_icem_pushes_on_the_whole_object_when_a_look_splits_it(tmp_path: Path) -> None:
+    """The belief holds one link; the last look fitted it as two overlapping boxes, the
+    nearer on the goal's side. The push that brings it to the goal starts on the far box:
+    iCEM plans on the outline of both, not of the nearer alone (whose far side lies inside
+    the other box, where the fingers cannot come down)."""
+    near, far = _box((-0.04, 0.45)), _box((0.045, 0.45))
+    cloud = PointCloud(np.zeros((1, 3)))
+    split = ShapeEstimate([near, far], np.array([[-0.04, 0.45, 0.0], [0.045, 0.45, 0.0]]),
+                          np.zeros((2, 14)), cloud)  # fmt: skip
+    goal = np.array([-0.06, 0.45, 0.0])
+    controller = _controller(tmp_path, (0.0, 0.45, 0.0), iterations=4, population=48,
+                             horizon_pushes=1)  # fmt: skip
+    push = controller.plan(Scene(cloud, split), goal, np.random.default_rng(0))
+    assert controller.last_cost < 0.01
+    assert push.cp_m[0] == pytest.approx(0.09, abs=0.01)  # the far box's far side
+    assert math.cos(push.pd_rad) < -0.95  # towards the goal
 
 
 def test_icem_keeps_its_first_push_away_from_a_blocked_one(tmp_path: Path) -> None:

@@ -27,6 +27,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from pydantic import Field, NonNegativeFloat, model_validator
+from scipy.spatial.distance import cdist
 from vistac.component import Component, ComponentConfig, ComponentContext
 from vistac.errors import ConfigError, DataError
 from vistac.plugins.actions.affordances import (
@@ -45,6 +46,9 @@ NoiseScaling = Literal["spectrum", "sequence"]
 _FRACTION, _OFFSET, _DURATION = 0, 1, 2
 _INFEASIBLE_COST = 1e3
 _OUTLINE_POINTS = 360
+_CACHED_OUTLINES = 8
+_JOIN_M = 0.005
+"""Fitted links whose outlines come this near are parts of one body (``joined_outline``)."""
 
 
 def colored_noise(
@@ -165,8 +169,9 @@ class ICEMController(Component):
         self._shifted: FloatArray | None = None
         """Elites of the last plan, shifted by one push: [K, H, 3]."""
         self.last_cost: float = math.nan
-        self._outline: tuple[Superquadric, FloatArray, FloatArray] | None = None
-        """The last link whose outline was traced, and its points and normals."""
+        self._outlines: dict[int, tuple[Superquadric, FloatArray, FloatArray]] = {}
+        """The links of the last shape estimate whose outlines were traced (by id), with
+        their points and normals."""
 
     # -- Controller protocol ----------------------------------------------------------------
 
@@ -188,7 +193,10 @@ class ICEMController(Component):
         if goal.shape != (3,) or not np.all(np.isfinite(goal)):
             raise ConfigError(f"actions.icem: goal must be 3 finite numbers, got {goal!r}")
         link0 = self.filter.layout.link_pose(self.filter.belief.mean)[0, :3].numpy()
-        outline = _OutlineInLink(scene.shape, link0, self._link_outline)
+        # A look may split what the belief holds as one link (a triangle fitted as two):
+        # the pushes then start on the outline of the fitted links joined together.
+        whole = self.filter.layout.n_links == 1 and len(scene.shape.links) > 1
+        outline = _OutlineInLink(scene.shape, link0, self._link_outline, whole)
         with torch.inference_mode():  # rollouts only: no autograd bookkeeping at all
             best, cost = self._optimise(outline, goal, rng, self._obstacles(scene))
         self.last_cost = cost
@@ -208,10 +216,13 @@ class ICEMController(Component):
 
     def _link_outline(self, link: Superquadric) -> tuple[FloatArray, FloatArray]:
         """:func:`link_outline` of ``link`` with ``_OUTLINE_POINTS`` points, traced again
-        only for another link (a new shape estimate): plans between two looks share it."""
-        if self._outline is None or self._outline[0] is not link:
-            self._outline = (link, *link_outline(link, _OUTLINE_POINTS))
-        return self._outline[1], self._outline[2]
+        only for the links of a new shape estimate: plans between two looks share them."""
+        cached = self._outlines.get(id(link))
+        if cached is None or cached[0] is not link:
+            if len(self._outlines) >= _CACHED_OUTLINES:
+                self._outlines.clear()
+            cached = self._outlines[id(link)] = (link, *link_outline(link, _OUTLINE_POINTS))
+        return cached[1], cached[2]
 
     def _obstacles(self, scene: Scene) -> _Obstacles:
         """Where the fingers must not come down, as the last look saw the object, and the
@@ -373,20 +384,25 @@ class _OutlineInLink:
     """Link 0's mid-height outline in the belief's link-0 frame, placed at any pose.
 
     points [P, 2] (m) and outward normals [P, 2], counter-clockwise: the outline of the
-    fitted link nearest to the belief's link 0 (traced by ``outline_of``), seen from the
-    belief's pose of link 0 ``belief_pose`` (x_m, y_m, theta_rad), so that at that pose it
-    lies where the fit saw it (the fit's own axes, which may be any of its symmetries, do not
-    matter)."""
+    fitted link nearest to the belief's link 0 (traced by ``outline_of``), or with ``whole``
+    the outer outline of that link and those joined to it (:func:`joined_outline`: the
+    belief holds them as one link), seen from the belief's pose of link 0 ``belief_pose``
+    (x_m, y_m, theta_rad), so that at that pose it lies where the fit saw it (the fit's own
+    axes, which may be any of its symmetries, do not matter)."""
 
     def __init__(
         self,
         shape: ShapeEstimate,
         belief_pose: FloatArray,
         outline_of: Callable[[Superquadric], tuple[FloatArray, FloatArray]],
+        whole: bool = False,
     ) -> None:
         centres = np.asarray(shape.initial_poses, dtype=np.float64)[:, :2]
         nearest = int(np.linalg.norm(centres - belief_pose[:2], axis=1).argmin())
-        points, normals = outline_of(shape.links[nearest])
+        if whole:
+            points, normals = joined_outline(shape.links, nearest, outline_of)
+        else:
+            points, normals = outline_of(shape.links[nearest])
         rotation = _rotation(-float(belief_pose[2]))
         self.points = (points - belief_pose[:2]) @ rotation.T
         self.normals = normals @ rotation.T
@@ -399,6 +415,40 @@ class _OutlineInLink:
         points = poses[:, :2] + np.einsum("nij,nj->ni", rotation, self.points[index])
         normals = np.einsum("nij,nj->ni", rotation, self.normals[index])
         return points, normals
+
+
+def joined_outline(
+    links: Sequence[Superquadric],
+    first: int,
+    outline_of: Callable[[Superquadric], tuple[FloatArray, FloatArray]] = link_outline,
+    join_m: float = _JOIN_M,
+) -> tuple[FloatArray, FloatArray]:
+    """The outer outline of link ``first`` and of the links joined to it (their outlines
+    within ``join_m``, directly or through each other): the points [P, 2] (m) of each one's
+    outline (``outline_of``) that lie inside no other of them, with their outward normals
+    [P, 2], ordered counter-clockwise about their centroid. A link apart from them (another
+    object, say) is left out."""
+    outlines = [outline_of(link) for link in links]
+    members, grown = [first], True
+    while grown:
+        grown = False
+        for index, (outline_xy, _) in enumerate(outlines):
+            if index in members:
+                continue
+            gap_m = min(cdist(outline_xy, outlines[member][0]).min() for member in members)
+            if gap_m <= join_m:
+                members.append(index)
+                grown = True
+    points, normals = [], []
+    for index in members:
+        others = [links[other] for other in members if other != index]
+        outside = ~inside_any_link(others, outlines[index][0])
+        points.append(outlines[index][0][outside])
+        normals.append(outlines[index][1][outside])
+    all_points, all_normals = np.concatenate(points), np.concatenate(normals)
+    offset = all_points - all_points.mean(axis=0)
+    order = np.argsort(np.arctan2(offset[:, 1], offset[:, 0]), kind="stable")
+    return all_points[order], all_normals[order]
 
 
 def _rotation(theta_rad: float) -> Any:
