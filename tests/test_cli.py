@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -85,3 +88,19 @@ def test_the_summary_names_the_files_the_run_wrote(tmp_path: Path) -> None:
     (tmp_path / "views").mkdir()
     text = format_summary({"skill": "s", "status": "success", "wall_time_s": 1.0}, tmp_path)
     assert text.splitlines()[-1] == f"  data: {tmp_path}/ (run.json, summary.json, views/)"
+
+
+def test_output_into_a_closed_pipe_ends_without_a_traceback() -> None:
+    """`vistac plugins | head -1`: the reader has gone when the output is written; exit 1,
+    no traceback."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", "vistac.cli", "plugins"],
+            stdout=write_end, stderr=subprocess.PIPE, text=True, timeout=120,
+        )  # fmt: skip
+    finally:
+        os.close(write_end)
+    assert done.returncode == 1
+    assert "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, done.stderr
