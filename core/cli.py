@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import sys
 from collections.abc import Callable, Sequence
@@ -110,6 +111,9 @@ def format_summary(summary: dict[str, Any], out_dir: Path) -> str:
         lines.append(_touch_line(summary.get("touch") or {}, summary["touch_errors"]))
     if summary.get("learned_shape"):
         lines.append(_learned_line(summary["learned_shape"]))
+    if summary.get("goal_push"):
+        lines.append(_goal_line(summary["goal_push"]))
+    lines += [_change_line(report) for report in summary.get("change_detection", [])]
     if summary.get("belief"):
         lines.append(
             _belief_table(
@@ -158,6 +162,35 @@ def _learned_line(record: dict[str, Any]) -> str:
     if record.get("poisson_error_m") is not None:
         text += f" (screened Poisson {1e3 * record['poisson_error_m']:.1f} mm)"
     return text
+
+
+def _goal_line(record: dict[str, Any]) -> str:
+    """Whether link 0 reached the goal, after how many planned pushes, and how far from it
+    the belief and (in simulation) the truth put it."""
+    x, y, turn = record["goal"]
+    text = f"  goal ({x:.3f}, {y:.3f}) m, turn {math.degrees(turn):.0f} deg: "
+    pushes = len(record.get("planned_cost_m", []))
+    if "reached" not in record:
+        return text + f"not checked ({pushes} goal push(es) planned)"
+    text += f"{'reached' if record['reached'] else 'not reached'} after {pushes} goal push(es)"
+    text += (
+        f"; link 0 believed {1e3 * record['believed_error_m']:.1f} mm, "
+        f"{math.degrees(record['believed_turn_error_rad']):.0f} deg from it"
+    )
+    if "true_error_m" in record:
+        text += (
+            f", truly {1e3 * record['true_error_m']:.1f} mm, "
+            f"{math.degrees(record['true_turn_error_rad']):.0f} deg"
+        )
+    return text
+
+
+def _change_line(report: dict[str, Any]) -> str:
+    """One interaction's change report: its lowest window score and whether it was flagged."""
+    text = f"  interaction {report['episode']}: likelihood score {report['score']:.2f}, "
+    if report["flagged"]:
+        return text + f"change flagged {report['flagged_after_s']:.1f} s after its start"
+    return text + "no change"
 
 
 def _shape_lines(shape: dict[str, Any], errors: dict[str, Any]) -> list[str]:

@@ -104,3 +104,34 @@ def test_output_into_a_closed_pipe_ends_without_a_traceback() -> None:
         os.close(write_end)
     assert done.returncode == 1
     assert "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, done.stderr
+
+
+def test_the_summary_tells_the_goal_and_each_change_report(tmp_path: Path) -> None:
+    """goal_push.yaml and detect_change.yaml print their outcome, not only summary.json."""
+    from vistac.cli import format_summary
+
+    base = {"skill": "s", "status": "success", "wall_time_s": 1.0}
+    goal = {"goal": [0.06, 0.5, 0.5], "planned_cost_m": [0.01, 0.004], "reached": True,
+            "believed_error_m": 0.0032, "believed_turn_error_rad": 0.0524,
+            "true_error_m": 0.0017, "true_turn_error_rad": 0.0873}  # fmt: skip
+    lines = format_summary({**base, "goal_push": goal}, tmp_path).splitlines()
+    assert lines[1] == (
+        "  goal (0.060, 0.500) m, turn 29 deg: reached after 2 goal push(es); link 0 "
+        "believed 3.2 mm, 3 deg from it, truly 1.7 mm, 5 deg"
+    )
+    real = {key: goal[key] for key in ("goal", "planned_cost_m", "believed_error_m",
+                                       "believed_turn_error_rad")}  # fmt: skip
+    lines = format_summary({**base, "goal_push": {**real, "reached": False}}, tmp_path)
+    assert "not reached after 2 goal push(es); link 0 believed 3.2 mm, 3 deg from it\n" in lines
+    unchecked = {"goal": goal["goal"], "planned_cost_m": [0.01]}
+    lines = format_summary({**base, "goal_push": unchecked}, tmp_path)
+    assert "turn 29 deg: not checked (1 goal push(es) planned)" in lines
+    reports = [
+        {"episode": 0, "score": -0.37, "flagged": False, "flagged_after_s": None},
+        {"episode": 1, "score": -0.812, "flagged": True, "flagged_after_s": 1.43},
+    ]
+    lines = format_summary({**base, "change_detection": reports}, tmp_path).splitlines()
+    assert lines[1:3] == [
+        "  interaction 0: likelihood score -0.37, no change",
+        "  interaction 1: likelihood score -0.81, change flagged 1.4 s after its start",
+    ]
