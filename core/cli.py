@@ -187,7 +187,7 @@ def _goal_line(record: dict[str, Any]) -> str:
 
 def _change_line(report: dict[str, Any]) -> str:
     """One interaction's change report: its lowest window score and whether it was flagged."""
-    text = f"  interaction {report['episode']}: likelihood score {report['score']:.2f}, "
+    text = f"  episode {report['episode']}: likelihood score {report['score']:.2f}, "
     if report["flagged"]:
         return text + f"change flagged {report['flagged_after_s']:.1f} s after its start"
     return text + "no change"

@@ -132,6 +132,6 @@ def test_the_summary_tells_the_goal_and_each_change_report(tmp_path: Path) -> No
     ]
     lines = format_summary({**base, "change_detection": reports}, tmp_path).splitlines()
     assert lines[1:3] == [
-        "  interaction 0: likelihood score -0.37, no change",
-        "  interaction 1: likelihood score -0.81, change flagged 1.4 s after its start",
+        "  episode 0: likelihood score -0.37, no change",
+        "  episode 1: likelihood score -0.81, change flagged 1.4 s after its start",
     ]
